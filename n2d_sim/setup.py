@@ -1,0 +1,28 @@
+"""ament_python / pip setup of n2d_sim."""
+from setuptools import find_packages, setup
+
+package_name = "n2d_sim"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(include=[package_name, package_name + ".*"]),
+    include_package_data=True,
+    package_data={package_name: ["**/*.yaml", "**/*.json", "**/*.obj", "**/*.mtl", "**/*.png"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="n2d developers",
+    maintainer_email="n2d@example.org",
+    description="The embedded simulated world of n2d: a Dynamixel X-series servo emulated on a pseudo-terminal, a Cycles-rendered turntable camera with ground truth, and the shipped sample objects.",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "sim_turntable_node = n2d_sim.nodes.sim_turntable_node:main",
+            "sim_camera_node = n2d_sim.nodes.sim_camera_node:main",
+        ],
+    },
+)
