@@ -20,7 +20,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="n2d bringup: the n2d command-line tool, launch files and the end-to-end demo.",
+    description="n2d bringup",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

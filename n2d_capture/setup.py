@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="Capture stage of n2d: Dynamixel turntable driver, ChArUco board, capture sweeps that write metric, posed, masked sessions.",
+    description="Capture stage of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

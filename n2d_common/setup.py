@@ -8,7 +8,7 @@ setup(
     version="0.1.0",
     packages=find_packages(include=[package_name, package_name + ".*"]),
     include_package_data=True,
-    package_data={package_name: ["**/*.yaml", "**/*.json", "**/*.obj", "**/*.mtl", "**/*.png"]},
+    package_data={package_name: ["**/*.yaml", "**/*.json", "**/*.obj", "**/*.mtl", "**/*.png", "**/*.xml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="Shared core of n2d: on-disk contracts (n2d.json manifests, atomic stage directories), typed configs, frames, progress, and the few ROS 2 helpers the nodes share.",
+    description="Shared core of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="Dataset stage of n2d: bpy/Cycles generator of domain-randomised pose datasets with BOP and DOPE annotations.",
+    description="Dataset stage of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

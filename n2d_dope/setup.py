@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="DOPE stage of n2d: training, ONNX export, evaluation and the live pose estimation node.",
+    description="DOPE stage of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="Reconstruction stage of n2d: capture session to a textured, metric mesh (NeuS hash-grid SDF, fast visual-hull path).",
+    description="Reconstruction stage of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

@@ -17,7 +17,7 @@ setup(
     zip_safe=False,
     maintainer="n2d developers",
     maintainer_email="n2d@example.org",
-    description="The embedded simulated world of n2d: a Dynamixel X-series servo emulated on a pseudo-terminal, a Cycles-rendered turntable camera with ground truth, and the shipped sample objects.",
+    description="The embedded simulated world of n2d",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

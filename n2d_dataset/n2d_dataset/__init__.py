@@ -1,1 +1,3 @@
-"""Dataset stage of n2d: bpy/Cycles generator of domain-randomised pose datasets with BOP and DOPE annotations."""
+"""Dataset stage of n2d: bpy/Cycles generator of domain-randomised pose datasets with BOP and DOPE
+annotations.
+"""

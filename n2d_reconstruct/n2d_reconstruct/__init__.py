@@ -1,1 +1,3 @@
-"""Reconstruction stage of n2d: capture session to a textured, metric mesh (NeuS hash-grid SDF, fast visual-hull path)."""
+"""Reconstruction stage of n2d: capture session to a textured, metric mesh (NeuS hash-grid SDF, fast
+visual-hull path).
+"""

@@ -1,1 +1,3 @@
-"""The embedded simulated world of n2d: a Dynamixel X-series servo emulated on a pseudo-terminal, a Cycles-rendered turntable camera with ground truth, and the shipped sample objects."""
+"""The embedded simulated world of n2d: a Dynamixel X-series servo emulated on a pseudo-terminal, a
+Cycles-rendered turntable camera with ground truth, and the shipped sample objects.
+"""

@@ -1,0 +1,57 @@
+"""Pictures people look at: contact sheets of frames with labels, mask outlines and overlays (RGB uint8)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from n2d_common.contracts import atomic_write_bytes
+
+
+def draw_mask_outline(rgb: np.ndarray, mask: np.ndarray, color=(0, 255, 0), thickness: int = 1) -> np.ndarray:
+    """A copy of `rgb` with the outline of boolean `mask` drawn on it."""
+    out = rgb.copy()
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, color, thickness, lineType=cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(images: list[np.ndarray], labels: list[str] | None = None, cols: int | None = None,
+                  thumb_width: int = 320) -> np.ndarray:
+    """Tile RGB images into one sheet, each scaled to `thumb_width` with its label in a corner."""
+    if not images:
+        raise ValueError("contact_sheet: no images")
+    cols = cols or math.ceil(math.sqrt(len(images)))
+    rows = math.ceil(len(images) / cols)
+    h0, w0 = images[0].shape[:2]
+    tw, th = thumb_width, round(thumb_width * h0 / w0)
+    sheet = np.full((rows * th + (rows + 1) * 4, cols * tw + (cols + 1) * 4, 3), 24, np.uint8)
+    for i, img in enumerate(images):
+        thumb = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+        if labels:
+            cv2.putText(thumb, labels[i], (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(thumb, labels[i], (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        r, c = divmod(i, cols)
+        y, x = 4 + r * (th + 4), 4 + c * (tw + 4)
+        sheet[y:y + th, x:x + tw] = thumb
+    return sheet
+
+
+def write_png(path: str | Path, rgb: np.ndarray) -> None:
+    """Atomically write an RGB (or single-channel) uint8 image as PNG."""
+    img = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise OSError(f"could not encode {path} as PNG")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_png(path: str | Path) -> np.ndarray:
+    """RGB uint8 (or single-channel) image from a PNG."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise OSError(f"cannot read image {path}")
+    return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

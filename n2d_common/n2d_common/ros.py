@@ -1,0 +1,176 @@
+"""The ROS 2 helpers every n2d node shares: environment, config <-> parameters, image/pose messages, main().
+
+Only node modules import this; the stage libraries stay free of ROS.
+"""
+
+from __future__ import annotations
+
+import array
+import os
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image
+
+from n2d_common.config import flat_fields, from_dict
+from n2d_common.errors import ConfigError, N2DError
+from n2d_common.frames import quat_from_R
+
+C = TypeVar("C")
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds_localhost.xml")
+
+SENSOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                        durability=DurabilityPolicy.VOLATILE)
+"""Subscribing to live video: keep only the newest frame, never queue stale ones."""
+PUBLISH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+"""Publishing frames and state: keep the newest only; reliable, so best-effort and reliable subscribers both match."""
+
+
+def ros_environment(domain_id: int | None = None, env: dict | None = None) -> dict:
+    """Environment defaults for ROS processes: localhost-only discovery, a log dir, shared-memory transport.
+
+    Fills `env` (default: os.environ) in place where unset and returns it. Nothing leaves the machine.
+    """
+    env = os.environ if env is None else env
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("HOME", "/tmp")
+    env.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    return env
+
+
+def _param_value(value: Any) -> Any:
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def declare_config(node: Node, cls: type[C]) -> C:
+    """Declare one parameter per config field (dotted names, the field docstring as description) and
+    return the config built from their values; a bad value raises ConfigError naming the parameter."""
+    data: dict = {}
+    for name, _tp, default, doc in flat_fields(cls):
+        value = _param_value(default)
+        if value is None or (isinstance(value, list) and not value):
+            continue  # ROS parameters cannot be None or untyped empty lists: keep the dataclass default
+        param = node.declare_parameter(name, value, ParameterDescriptor(description=doc))
+        node_dict = data
+        *sections, leaf = name.split(".")
+        for section in sections:
+            node_dict = node_dict.setdefault(section, {})
+        node_dict[leaf] = param.value
+    try:
+        return from_dict(cls, data)
+    except ConfigError as exc:
+        raise ConfigError(f"parameter {exc.message}", exc.hint) from None
+
+
+def stamp_msg(t_s: float) -> Time:
+    """builtin_interfaces/Time from seconds."""
+    sec = int(t_s)
+    return Time(sec=sec, nanosec=int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+
+
+def stamp_seconds(stamp: Time) -> float:
+    """Seconds of a builtin_interfaces/Time."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3}
+
+
+def image_msg(pixels: np.ndarray, encoding: str, stamp: Time, frame_id: str) -> Image:
+    """sensor_msgs/Image of a uint8 HxW or HxWxC array (no cv_bridge: it is not installable here)."""
+    if encoding not in _CHANNELS or pixels.dtype != np.uint8:
+        raise ValueError(f"image_msg: unsupported encoding/dtype {encoding}/{pixels.dtype}")
+    pixels = np.ascontiguousarray(pixels)
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = pixels.shape[:2]
+    msg.encoding = encoding
+    msg.step = msg.width * _CHANNELS[encoding]
+    msg.data = array.array("B", pixels.tobytes())
+    return msg
+
+
+def image_rgb(msg: Image) -> np.ndarray:
+    """HxWx3 uint8 RGB from a sensor_msgs/Image in rgb8, bgr8, rgba8, bgra8 or mono8."""
+    if msg.encoding not in _CHANNELS:
+        raise N2DError(f"image encoding {msg.encoding!r} is not supported",
+                       f"publish one of {', '.join(_CHANNELS)} (e.g. set the camera driver to rgb8)")
+    c = _CHANNELS[msg.encoding]
+    rows = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)
+    px = rows[:, : msg.width * c].reshape(msg.height, msg.width, c)
+    if c == 1:
+        return np.repeat(px, 3, axis=2)
+    if msg.encoding.startswith("bgr"):
+        px = px[..., 2::-1]
+    return np.ascontiguousarray(px[..., :3])
+
+
+def camera_info_msg(K: np.ndarray, width: int, height: int, stamp: Time, frame_id: str) -> CameraInfo:
+    """sensor_msgs/CameraInfo of an undistorted pinhole camera with intrinsics K."""
+    msg = CameraInfo()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = int(width), int(height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    msg.k = [float(v) for v in np.asarray(K, dtype=float).reshape(9)]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    msg.p = [float(v) for v in P.reshape(12)]
+    return msg
+
+
+def pose_msg(T: np.ndarray) -> Pose:
+    """geometry_msgs/Pose of a 4x4 transform."""
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
+    q = quat_from_R(T[:3, :3])
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+    return pose
+
+
+def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int = 4) -> None:
+    """The `main()` of every n2d node: init, spin on a multi-threaded executor, clean shutdown.
+
+    A configuration or device error at start-up is logged as one line and exits non-zero.
+    """
+    ros_environment()
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = node_cls()
+        executor = MultiThreadedExecutor(num_threads=threads)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except N2DError as exc:
+        name = getattr(node_cls, "NAME", node_cls.__name__)
+        rclpy.logging.get_logger(name).fatal(str(exc))
+        code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    if code:
+        raise SystemExit(code)
+

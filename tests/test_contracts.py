@@ -1,0 +1,92 @@
+"""The n2d.json manifest and atomic stage directories: complete only when finished, nothing lost on failure."""
+
+import json
+
+import pytest
+
+from n2d_common.contracts import MANIFEST, atomic_write_json, open_stage, read_manifest, stage_output
+from n2d_common.errors import ContractError
+
+
+def _write(out, kind="model", payload="v1", **kw):
+    with stage_output(out, kind, **kw) as w:
+        (w.path / "data.txt").write_text(payload)
+        w.finish(config={"a": 1}, inputs={"session": "/x"})
+
+
+def test_finished_stage_is_complete_and_readable(tmp_path):
+    out = tmp_path / "model"
+    _write(out)
+    manifest = open_stage(out, "model")
+    assert manifest["complete"] and manifest["kind"] == "model" and manifest["version"] == 1
+    assert manifest["inputs"] == {"session": "/x"} and manifest["config"] == {"a": 1}
+    assert not (tmp_path / "model.partial").exists()
+
+
+def test_crash_leaves_no_complete_looking_output_and_resumes(tmp_path):
+    out = tmp_path / "ds"
+    with pytest.raises(RuntimeError), stage_output(out, "dataset", config={"frames": 4}) as w:
+        (w.path / "frame0").write_text("done")
+        raise RuntimeError("killed")
+    assert not out.exists()
+    with pytest.raises(ContractError, match="--resume"):
+        open_stage(out, "dataset")
+    assert read_manifest(tmp_path / "ds.partial")["complete"] is False
+    with stage_output(out, "dataset", config={"frames": 4}) as w:
+        assert w.resumed and (w.path / "frame0").read_text() == "done"
+        w.finish()
+    assert open_stage(out, "dataset")["complete"]
+
+
+def test_partial_of_another_job_is_refused_unless_overwrite(tmp_path):
+    out = tmp_path / "ds"
+    with pytest.raises(RuntimeError), stage_output(out, "dataset", config={"frames": 4}):
+        raise RuntimeError
+    with pytest.raises(ContractError, match="another job"):
+        with stage_output(out, "dataset", config={"frames": 8}):
+            pass
+    with stage_output(out, "dataset", config={"frames": 8}, overwrite=True) as w:
+        assert not w.resumed
+        w.finish()
+
+
+def test_existing_output_is_refused_and_survives_failed_overwrite(tmp_path):
+    out = tmp_path / "model"
+    _write(out, payload="old")
+    with pytest.raises(ContractError, match="already exists"):
+        _write(out, payload="new")
+    with pytest.raises(RuntimeError), stage_output(out, "model", overwrite=True) as w:
+        (w.path / "data.txt").write_text("half")
+        raise RuntimeError
+    assert (out / "data.txt").read_text() == "old"
+    _write(out, payload="new", overwrite=True)
+    assert (out / "data.txt").read_text() == "new"
+
+
+def test_foreign_and_wrong_kind_directories_are_refused(tmp_path):
+    foreign = tmp_path / "photos"
+    foreign.mkdir()
+    (foreign / "img.jpg").write_bytes(b"x")
+    with pytest.raises(ContractError, match="not an n2d directory"):
+        _write(foreign)
+    assert (foreign / "img.jpg").read_bytes() == b"x"
+    with pytest.raises(ContractError, match="no n2d.json"):
+        open_stage(foreign, "capture_session")
+    out = tmp_path / "model"
+    _write(out)
+    with pytest.raises(ContractError, match="is a model, not a dataset"):
+        open_stage(out, "dataset")
+    with pytest.raises(ContractError, match="does not exist"):
+        open_stage(tmp_path / "missing", "model")
+
+
+def test_corrupt_and_newer_manifests(tmp_path):
+    out = tmp_path / "model"
+    _write(out)
+    data = json.loads((out / MANIFEST).read_text())
+    atomic_write_json(out / MANIFEST, {**data, "version": 99})
+    with pytest.raises(ContractError, match="newer n2d"):
+        open_stage(out, "model")
+    (out / MANIFEST).write_text("{not json")
+    with pytest.raises(ContractError, match="corrupt"):
+        open_stage(out, "model")
