@@ -45,7 +45,7 @@ PY=$VENV/bin/python
 stamp() { sha256sum "$@" | sha256sum | cut -c1-16; }
 
 # --- 3. Python dependencies (torch first: the CPU wheel, then everything else pinned) ------------------
-deps_stamp=$(stamp requirements.txt constraints.txt install.sh)
+deps_stamp=$(stamp requirements.txt requirements-base.txt constraints.txt install.sh)
 if [ "$(cat "$VENV/.n2d-deps" 2>/dev/null)" != "$deps_stamp" ]; then
   say "pip: installing pinned dependencies (first run: a few minutes)"
   "$PY" -m pip install -q --upgrade 'pip>=24' 'setuptools<80' wheel

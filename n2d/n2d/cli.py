@@ -15,13 +15,18 @@ from n2d_common.errors import N2DError
 
 
 def _progress_bar(desc: str):
-    """A ProgressFn drawing one tqdm bar (0..100 %) with the stage and message as postfix."""
+    """A ProgressFn drawing one tqdm bar (0..100 %) with the stage and message as postfix.
+
+    The bar appears with the first report, so a job that fails its input checks prints only its error."""
     from tqdm import tqdm
 
-    bar = tqdm(total=100, desc=desc, unit="%", bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining} "
-               "{postfix}", dynamic_ncols=True)
+    bar = None
 
     def report(p) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=100, desc=desc, unit="%", dynamic_ncols=True,
+                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}")
         bar.n = round(100 * min(max(p.fraction, 0.0), 1.0))
         bar.set_postfix_str(f"{p.stage} {p.message}".strip(), refresh=False)
         bar.refresh()

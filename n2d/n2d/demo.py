@@ -37,6 +37,8 @@ class DemoConfig:
     """Camera image width (px)."""
     height: int = 480
     """Camera image height (px)."""
+    focal_px: float = 600.0
+    """Camera focal length (px); scale it with the image size."""
     velocity_rad_s: float = 1.5
     """Plate profile velocity during the sweep."""
     domain_id: int = -1
@@ -90,7 +92,8 @@ def run_demo(out: Path, cfg: DemoConfig, *, overwrite: bool = False, progress: P
     os.environ.update(env)
     tmp = Path(tempfile.mkdtemp(prefix="n2d_demo_"))
     sim_args = {"object": cfg.object, "port": str(tmp / "ttyDXL"), "control": str(tmp / "servo.ctl"),
-                "width": str(cfg.width), "height": str(cfg.height), **cfg.extra_sim_args}
+                "width": str(cfg.width), "height": str(cfg.height), "focal_px": str(cfg.focal_px),
+                **cfg.extra_sim_args}
     with stage_output(out, "run", overwrite=overwrite, config=to_dict(cfg)) as writer, \
             Launch(load("sim"), sim_args, env=env, log=lambda line: None) as world:
         frames_dir = writer.path / "frames"

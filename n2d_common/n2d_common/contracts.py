@@ -23,6 +23,8 @@ from typing import Any
 
 from n2d_common.errors import ContractError
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
 MANIFEST = "n2d.json"
 VERSION = 1
 KINDS = ("capture_session", "model", "dataset", "dope_model", "run", "sim_frames")
@@ -35,6 +37,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; outputs get the usual permissions
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
