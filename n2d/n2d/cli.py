@@ -54,7 +54,7 @@ def cmd_demo(args) -> int:
     cfg = _config(DemoConfig, args)
     summary = run_demo(args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("demo"))
     print(f"demo: {summary['views']} views in {summary['seconds']} s; driver vs simulator ground truth: "
-          f"max {summary['max_driver_vs_truth_deg']:.3f} deg")
+          f"max {summary['max_driver_vs_truth_deg']:.4f} deg")
     print(f"demo: wrote {args.out}/ (contact_sheet.png, frames/, frames.json)")
     return 0
 
