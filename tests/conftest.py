@@ -1,7 +1,12 @@
-"""Test-wide setup: every test talks ROS only on localhost, in a ROS_DOMAIN_ID of its own."""
+"""Test-wide setup: every test talks ROS only on localhost, in a ROS_DOMAIN_ID of its own; shared fixtures."""
 
 import itertools
 import os
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -21,3 +26,36 @@ def ros_domain(monkeypatch) -> int:
 
     ros_environment(domain)
     return domain
+
+
+@dataclass
+class ServoSim:
+    """A standalone servo emulator process: its port (symlink), control client and process."""
+
+    link: str
+    control: object
+    proc: subprocess.Popen
+
+
+@pytest.fixture
+def sim():
+    """A standalone emulator process (id 1) behind a symlink, with its control socket."""
+    from n2d_common.errors import DeviceError
+    from n2d_sim.servo import ServoControl
+
+    with tempfile.TemporaryDirectory(prefix="n2d-servo-") as tmp:  # short path: AF_UNIX names are limited
+        link, control, log = Path(tmp) / "ttyDXL", Path(tmp) / "ctl", Path(tmp) / "log"
+        with open(log, "w") as out:
+            proc = subprocess.Popen([sys.executable, "-m", "n2d_sim.servo", "--link", str(link),
+                                     "--control", str(control)], stdout=out, stderr=subprocess.STDOUT)
+        ctl = ServoControl(control)
+        try:
+            ctl.wait_ready(timeout_s=15)
+        except DeviceError:
+            proc.kill()
+            pytest.fail(f"emulator did not start:\n{log.read_text()}")
+        yield ServoSim(str(link), ctl, proc)
+        if proc.poll() is None:
+            proc.terminate()
+            assert proc.wait(timeout=5) == 0, log.read_text()
+        assert not link.is_symlink(), "the emulator left its symlink behind"

@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-import tempfile
 import termios
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -23,8 +19,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from n2d_common.errors import DeviceError
-from n2d_sim.servo import PtyServo, ServoControl, ServoEmulator, crc16, make_packet, plan_move
+from n2d_sim.servo import PtyServo, ServoEmulator, crc16, make_packet, plan_move
 
 # Control-table addresses of the X-series (written out here on purpose, not imported).
 MODEL_NUMBER, ID, OPERATING_MODE, HOMING_OFFSET, MAX_POSITION_LIMIT = 0, 7, 11, 20, 48
@@ -32,34 +27,6 @@ TORQUE, LED, HW_ERROR = 64, 65, 70
 GOAL_VELOCITY, PROFILE_ACC, PROFILE_VEL, GOAL_POSITION = 104, 108, 112, 116
 MOVING, PRESENT_VELOCITY, PRESENT_POSITION = 122, 128, 132
 ERR_CRC, ERR_DATA_RANGE, ERR_DATA_LIMIT, ERR_ACCESS, ALERT = 3, 4, 6, 7, 0x80
-
-
-@dataclass
-class Sim:
-    link: str
-    control: ServoControl
-    proc: subprocess.Popen
-
-
-@pytest.fixture
-def sim():
-    """A standalone emulator process (id 1) behind a symlink, with its control socket."""
-    with tempfile.TemporaryDirectory(prefix="n2d-servo-") as tmp:  # short path: AF_UNIX names are limited
-        link, control, log = Path(tmp) / "ttyDXL", Path(tmp) / "ctl", Path(tmp) / "log"
-        with open(log, "w") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "n2d_sim.servo", "--link", str(link),
-                                     "--control", str(control)], stdout=out, stderr=subprocess.STDOUT)
-        ctl = ServoControl(control)
-        try:
-            ctl.wait_ready(timeout_s=15)
-        except DeviceError:
-            proc.kill()
-            pytest.fail(f"emulator did not start:\n{log.read_text()}")
-        yield Sim(str(link), ctl, proc)
-        if proc.poll() is None:
-            proc.terminate()
-            assert proc.wait(timeout=5) == 0, log.read_text()
-        assert not link.is_symlink(), "the emulator left its symlink behind"
 
 
 @pytest.fixture

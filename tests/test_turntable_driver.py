@@ -4,13 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
-import subprocess
-import sys
-import tempfile
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
@@ -26,36 +21,9 @@ from n2d_capture.turntable import (
 )
 from n2d_common.config import ConfigError, from_dict
 from n2d_common.errors import Cancelled, DeviceError
-from n2d_sim.servo import ServoControl
 
 
-@dataclass
-class Sim:
-    link: str
-    control: ServoControl
-    proc: subprocess.Popen
-
-
-@pytest.fixture
-def sim():
-    """A standalone emulator process (id 1) behind a symlink, with its control socket."""
-    with tempfile.TemporaryDirectory(prefix="n2d-servo-") as tmp:  # short path: AF_UNIX names are limited
-        link, control, log = Path(tmp) / "ttyDXL", Path(tmp) / "ctl", Path(tmp) / "log"
-        with open(log, "w") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "n2d_sim.servo", "--link", str(link),
-                                     "--control", str(control)], stdout=out, stderr=subprocess.STDOUT)
-        ctl = ServoControl(control)
-        try:
-            ctl.wait_ready(timeout_s=15)
-        except DeviceError:
-            proc.kill()
-            pytest.fail(f"emulator did not start:\n{log.read_text()}")
-        yield Sim(str(link), ctl, proc)
-        proc.terminate()
-        assert proc.wait(timeout=5) == 0, log.read_text()
-
-
-def fast(sim: Sim, **overrides) -> TurntableConfig:
+def fast(sim, **overrides) -> TurntableConfig:
     """A config for quick tests: brisk profile, short settle."""
     values = dict(port=sim.link, velocity_limit_rad_s=3.0, acceleration_rad_s2=20.0, settle_time_s=0.1,
                   reconnect_backoff_s=0.05)
