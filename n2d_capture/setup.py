@@ -21,6 +21,8 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
+            "turntable_node = n2d_capture.nodes.turntable_node:main",
+            "capture_node = n2d_capture.nodes.capture_node:main",
         ],
     },
 )

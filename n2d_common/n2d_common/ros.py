@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import array
 import os
+import threading
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -15,6 +16,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.action import ActionClient
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -174,3 +176,32 @@ def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int =
     if code:
         raise SystemExit(code)
 
+
+
+class SafeActionClient(ActionClient):
+    """rclpy's ActionClient, safe to call from a thread other than the executor's.
+
+    rclpy (Jazzy) registers a request's future only after sending the request; when the executor
+    thread handles the response in between, it is dropped ("Ignoring unexpected goal response")
+    and the future never completes. Sending and handling are serialised here.
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._request_lock = threading.RLock()
+
+    def send_goal_async(self, *args, **kwargs):
+        with self._request_lock:
+            return super().send_goal_async(*args, **kwargs)
+
+    def _cancel_goal_async(self, goal_handle):
+        with self._request_lock:
+            return super()._cancel_goal_async(goal_handle)
+
+    def _get_result_async(self, goal_handle):
+        with self._request_lock:
+            return super()._get_result_async(goal_handle)
+
+    async def execute(self, taken_data):
+        with self._request_lock:
+            return await super().execute(taken_data)

@@ -1,0 +1,95 @@
+"""turntable_node across processes: the real node drives the emulated servo; an rclpy action client in
+this process rotates, watches feedback, cancels; joint states arrive; a bad port fails with one line."""
+
+import math
+import threading
+import time
+
+import pytest
+import rclpy
+from action_msgs.msg import GoalStatus
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
+
+from n2d.launch_description import LaunchSpec, NodeSpec
+from n2d.launcher import Launch
+from n2d_common.ros import SENSOR_QOS, SafeActionClient
+from n2d_interfaces.action import Rotate
+
+
+def _turntable_launch(port: str, logs: list) -> Launch:
+    node = NodeSpec("n2d_capture", "turntable_node", "turntable",
+                    parameters={"turntable.port": port, "turntable.velocity_limit_rad_s": 2.0,
+                                "turntable.acceleration_rad_s2": 10.0, "turntable.settle_time_s": 0.1})
+    return Launch(LaunchSpec("turntable", "", {}, [node]), log=logs.append)
+
+
+@pytest.fixture
+def client_node(ros_domain):
+    rclpy.init(domain_id=ros_domain)
+    node = rclpy.create_node("test_turntable_client")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    yield node
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def _wait(future, timeout_s=30):
+    deadline = time.monotonic() + timeout_s
+    while not future.done():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+    return future.result()
+
+
+@pytest.mark.timeout(120)
+def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
+    logs = []
+    with _turntable_launch(sim.link, logs) as launch:
+        states = []
+        client_node.create_subscription(JointState, "/n2d/turntable/joint_states", states.append, SENSOR_QOS)
+        client = SafeActionClient(client_node, Rotate, "/n2d/turntable/rotate")
+        assert client.wait_for_server(timeout_sec=30), logs
+
+        feedback = []
+        goal = _wait(client.send_goal_async(Rotate.Goal(angle_rad=math.pi / 2), feedback_callback=feedback.append))
+        assert goal.accepted
+        result = _wait(goal.get_result_async())
+        assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.success
+        assert abs(result.result.angle_rad - math.pi / 2) < 0.005
+        assert abs(sim.control.state()["plate_rad"] - math.pi / 2) < 0.005
+        assert feedback and feedback[-1].feedback.progress == pytest.approx(1.0)
+        assert {f.feedback.stage for f in feedback} <= {"moving", "settling"}
+
+        # a long move, cancelled half way: the plate stops short of the goal
+        goal = _wait(client.send_goal_async(Rotate.Goal(angle_rad=4 * math.pi)))
+        time.sleep(0.8)
+        busy = _wait(client.send_goal_async(Rotate.Goal(angle_rad=0.0)))
+        assert not busy.accepted  # one rotation at a time
+        _wait(goal.cancel_goal_async())
+        result = _wait(goal.get_result_async())
+        assert result.status == GoalStatus.STATUS_CANCELED
+        deadline = time.monotonic() + 10
+        while sim.control.state()["moving"]:  # braking with the profile deceleration
+            assert time.monotonic() < deadline, "the plate does not stop"
+            time.sleep(0.05)
+        stopped = sim.control.state()["plate_rad"]
+        assert math.pi / 2 < stopped < 4 * math.pi - 1.0
+        deadline = time.monotonic() + 10
+        while not states or abs(states[-1].position[0] - stopped) > 0.01:
+            assert time.monotonic() < deadline, f"joint states do not follow the plate: {stopped} {states[-1:]}"
+            time.sleep(0.05)
+        assert states[-1].name == ["turntable_plate"]
+        assert not launch.dead()
+
+
+@pytest.mark.timeout(60)
+def test_wrong_port_is_one_clear_fatal_line(tmp_path, ros_domain):
+    logs = []
+    with _turntable_launch(str(tmp_path / "ttyUSB9"), logs) as launch:
+        assert launch.wait() == 2
+    fatal = [line for line in logs if "FATAL" in line]
+    assert len(fatal) == 1 and "cannot open serial port" in fatal[0] and "hint:" in fatal[0]
