@@ -166,7 +166,8 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
     - `<out>.partial` from an earlier run of the same job (kind and config): reused when `resume`;
       unfinished work of another job is discarded only with `overwrite`, else refused.
     The partial directory carries an incomplete manifest with `config` so a resumed run can check
-    that it continues the same job. On an exception the partial directory stays for `--resume`.
+    that it continues the same job. Until `finish()` (on an exception, or when a job stops half way
+    on purpose) the partial directory stays, for the next run to resume.
     """
     out = Path(out).absolute()
     if out.exists():
@@ -201,7 +202,4 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
     if not resumed:
         partial.mkdir()
         write_manifest(partial, kind, config=config, complete=False)
-    writer = StageWriter(out, kind, resumed)
-    yield writer
-    if not writer.finished:
-        raise RuntimeError("stage_output: the stage returned without calling finish()")
+    yield StageWriter(out, kind, resumed)

@@ -1,0 +1,87 @@
+"""The capture-session contract: `transforms.json` (nerfstudio's format) and its reader.
+
+A session directory holds `images/NNNN.png`, `masks/NNNN.png`, `transforms.json`, `capture.json`,
+`contact_sheet.png` and `n2d.json`. `transforms.json` follows nerfstudio's `nerfstudio_dataparser`
+field names (camera_model, fl_x, fl_y, cx, cy, w, h, k1, k2, p1, p2, k3, orientation_override,
+frames[].file_path, frames[].mask_path, frames[].transform_matrix); cx, cy follow its pixel-edge
+convention (OpenCV + 0.5). Each transform_matrix is camera-to-world, i.e.
+T_turntable_cam in the metric, gravity-aligned, plate-attached turntable frame, with the camera
+axes in nerfstudio's OpenGL convention (x right, y up, z backwards); `T_cam_opencv` converts.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from n2d_common.contracts import open_stage
+
+PIXEL_EDGE = 0.5
+"""nerfstudio and COLMAP put pixel centres at +0.5, OpenCV at integers: cx_nerfstudio = cx_opencv + 0.5."""
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Right-multiply a camera-to-world pose with OpenCV camera axes to get OpenGL camera axes (and back)."""
+
+
+def transforms_json(K: np.ndarray, dist: np.ndarray | None, width: int, height: int,
+                    frames: list[tuple[str, str | None, np.ndarray]]) -> dict:
+    """nerfstudio transforms.json content; `frames` holds (image file, mask file or None, T_turntable_cam
+    with OpenCV camera axes), paths relative to the session directory."""
+    d = np.zeros(5) if dist is None or len(dist) == 0 else np.asarray(dist, dtype=float).ravel()
+    d = np.pad(d, (0, max(0, 5 - len(d))))
+    out = {
+        "camera_model": "OPENCV",
+        "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]),
+        "cx": float(K[0, 2]) + PIXEL_EDGE, "cy": float(K[1, 2]) + PIXEL_EDGE,
+        "w": int(width), "h": int(height),
+        "k1": float(d[0]), "k2": float(d[1]), "p1": float(d[2]), "p2": float(d[3]), "k3": float(d[4]),
+        "n2d_frame": "turntable: metres, origin at the plate centre on its top surface, Z up the rotation axis",
+        "n2d_convention": "transform_matrix = camera-to-world (T_turntable_cam), OpenGL camera axes "
+                          "(x right, y up, z back); cx, cy with pixel centres at +0.5 (nerfstudio, COLMAP): "
+                          "OpenCV's cx is cx - 0.5",
+        "orientation_override": "none",
+        "frames": [],
+    }
+    for image, mask, T in frames:
+        frame = {"file_path": image, "transform_matrix": (np.asarray(T) @ OPENGL_FROM_OPENCV).tolist()}
+        if mask is not None:
+            frame["mask_path"] = mask
+        out["frames"].append(frame)
+    return out
+
+
+@dataclass
+class SessionView:
+    """One view of a capture session."""
+
+    image: Path
+    mask: Path | None
+    T_turntable_cam: np.ndarray
+    """4x4 camera pose (OpenCV camera axes) in the turntable frame, metres."""
+
+
+@dataclass
+class Session:
+    """A complete capture session, as the reconstruction stage reads it."""
+
+    directory: Path
+    K: np.ndarray
+    dist: np.ndarray
+    width: int
+    height: int
+    views: list[SessionView]
+    manifest: dict
+
+
+def read_session(directory: str | Path) -> Session:
+    """Open a complete capture session (refusing partial or foreign directories with a hint)."""
+    directory = Path(directory)
+    manifest = open_stage(directory, "capture_session")
+    t = json.loads((directory / "transforms.json").read_text())
+    K = np.array([[t["fl_x"], 0.0, t["cx"] - PIXEL_EDGE], [0.0, t["fl_y"], t["cy"] - PIXEL_EDGE], [0.0, 0.0, 1.0]])
+    dist = np.array([t.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
+    views = [SessionView(directory / f["file_path"], directory / f["mask_path"] if "mask_path" in f else None,
+                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV) for f in t["frames"]]
+    return Session(directory, K, dist, int(t["w"]), int(t["h"]), views, manifest)
