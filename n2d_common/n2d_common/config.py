@@ -158,16 +158,21 @@ def read_mapping(path: str | Path) -> dict:
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"cannot read config {path}: {exc.strerror}", "check the path") from None
+    return parse_mapping(text, f"config {path}", json_text=path.suffix == ".json")
+
+
+def parse_mapping(text: str, where: str = "config", json_text: bool = False) -> dict:
+    """Parse YAML (or JSON) text holding a mapping; `where` names it in the error."""
     try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        data = json.loads(text) if json_text else yaml.safe_load(text)
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"config {path} is not valid {'JSON' if path.suffix == '.json' else 'YAML'}: {first}",
+        raise ConfigError(f"{where} is not valid {'JSON' if json_text else 'YAML'}: {first}",
                           "fix the syntax or regenerate the file") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"config {path} must hold a mapping, not {type(data).__name__}")
+        raise ConfigError(f"{where} must hold a mapping, not {type(data).__name__}")
     return data
 
 
@@ -197,15 +202,16 @@ def load_config(cls: type[C], path: str | Path | None = None, overrides: list[st
     """The config `cls`: defaults (or `base`), then the file at `path`, then the `key=value` overrides."""
     data = to_dict(base) if base is not None else {}
     if path is not None:
-        data = _merge(data, read_mapping(path))
+        data = merge(data, read_mapping(path))
     data = apply_overrides(data, overrides or [])
     return from_dict(cls, data)
 
 
-def _merge(a: dict, b: dict) -> dict:
+def merge(a: dict, b: dict) -> dict:
+    """Nested mapping `a` updated by `b` (sections merged key by key)."""
     out = dict(a)
     for k, v in b.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 

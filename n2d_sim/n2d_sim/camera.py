@@ -5,10 +5,12 @@ imported in the caller's process, which may be a ROS node) and keeps the scene b
 frames, so a new plate angle costs one render. The worker is a plain subprocess talking over a
 socket pair, not a multiprocessing child, so callers need no `if __name__ == "__main__"` guard.
 Frames are noise-free and cached by angle; `noisy()` adds fresh sensor noise, so a node can
-republish the last frame at its camera rate while the plate stands still.
+republish the last frame at its camera rate while the plate stands still. `render(angle,
+object_visible=False)` gives the empty plate at that angle, the reference for background subtraction.
 
     with SimCamera(SimWorldConfig(object="bottle")) as cam:
         frame = cam.render(math.radians(30))
+        empty = cam.render(math.radians(30), object_visible=False)
         image = cam.noisy(frame.rgb, rng)
 """
 
@@ -44,7 +46,7 @@ class SimFrame:
     rgb: np.ndarray
     """HxWx3 uint8 sRGB image."""
     mask: np.ndarray
-    """HxW bool: pixels whose centre sees the object (exact, not anti-aliased)."""
+    """HxW bool: pixels whose centre sees the object (exact, not anti-aliased); all False when it is hidden."""
     depth: np.ndarray
     """HxW float32 planar depth (distance along the optical axis), metres."""
     K: np.ndarray
@@ -52,11 +54,13 @@ class SimFrame:
     T_cam_turntable: np.ndarray
     """4x4 transform from the turntable frame into the camera frame."""
     T_cam_obj: np.ndarray
-    """4x4 transform from the object (model) frame into the camera frame."""
+    """4x4 transform from the object (model) frame into the camera frame (where it stands, even when hidden)."""
     angle_rad: float
     """Plate angle of this view, radians."""
     render_s: float
     """Seconds the render took (0 when it came from the cache)."""
+    object_visible: bool = True
+    """False for a render of the empty plate (the object left out)."""
 
 
 class SimCamera:
@@ -74,7 +78,7 @@ class SimCamera:
         self._proc: subprocess.Popen | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
-        self._cache: OrderedDict[float, SimFrame] = OrderedDict()
+        self._cache: OrderedDict[tuple[float, bool], SimFrame] = OrderedDict()
 
     @property
     def width(self) -> int:
@@ -131,14 +135,16 @@ class SimCamera:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def render(self, angle_rad: float) -> SimFrame:
+    def render(self, angle_rad: float, object_visible: bool = True) -> SimFrame:
         """The noise-free frame at plate angle `angle_rad` (from the cache when it was rendered lately).
 
         The frame's `angle_rad` is the angle asked for (multi-turn angles stay as they are); the cache
-        and the render work with the angle modulo one turn.
+        and the render work with the angle modulo one turn. With `object_visible` False the object is
+        left out (the empty plate: no object, none of its shadows; the mask all False).
         """
         angle = float(angle_rad)
-        key = round(math.remainder(angle, 2 * math.pi), 6)
+        object_visible = bool(object_visible)
+        key = (round(math.remainder(angle, 2 * math.pi), 6), object_visible)
         if self._proc is None:
             self.start()
         with self._lock:
@@ -150,7 +156,7 @@ class SimCamera:
                 raise DeviceError("the simulated camera is closed", "start() it again")
             t0 = time.perf_counter()
             try:
-                self._conn.send(("render", math.remainder(angle, 2 * math.pi)))
+                self._conn.send(("render", (math.remainder(angle, 2 * math.pi), object_visible)))
             except (BrokenPipeError, OSError):
                 raise DeviceError("the simulated camera's render process is gone",
                                   "restart the camera") from None
@@ -158,7 +164,7 @@ class SimCamera:
             frame = SimFrame(rgb=out["rgb"], mask=out["mask"], depth=out["depth"], K=self.K.copy(),
                              T_cam_turntable=self.T_cam_turntable.copy(),
                              T_cam_obj=world.T_cam_obj(self.cfg, angle), angle_rad=angle,
-                             render_s=time.perf_counter() - t0)
+                             render_s=time.perf_counter() - t0, object_visible=object_visible)
             self._cache[key] = frame
             while len(self._cache) > self.cfg.cache_size:
                 self._cache.popitem(last=False)

@@ -5,8 +5,9 @@ This is the only n2d_sim module that imports bpy, and it runs only as the worker
 costs ~0.5 GB and is not thread-safe; a ROS node owns the caller's process). FD is one end of a
 socket pair used as a `multiprocessing.connection.Connection`. Protocol: the caller sends the
 SimWorldConfig as a dict; the worker answers ("ready", info) once the scene is built, then each
-("render", angle_rad) with ("frame", {rgb, mask, depth}); ("close", None) or a closed socket ends
-it; a failure is answered with ("error", traceback) and ends it too.
+("render", (angle_rad, object_visible)) with ("frame", {rgb, mask, depth}); ("close", None) or a
+closed socket ends it; a failure is answered with ("error", traceback) and ends it too. With the
+object hidden the frame is the empty plate (no object, no object shadows) and the mask is all False.
 
 The scene: a lab table with a procedural wood top, a back wall with a poster, distractor boxes and
 cylinders (seeded), a turntable (base + dark plate) with the ChArUco sheet lying on it and the object
@@ -457,13 +458,16 @@ class Scene:
         cycles.samples, cycles.use_denoising = self.cfg.samples, self.cfg.denoiser == "oidn"
         return background
 
-    def render(self, angle_rad: float) -> dict:
+    def render(self, angle_rad: float, object_visible: bool = True) -> dict:
         """Linear RGB (float32), object mask (bool) and planar depth (float32, m) at plate angle `angle_rad`.
 
         Only the turntable, board and object are rendered (over a transparent film, the surroundings
-        still casting shadows and bouncing light); they are laid over the cached background.
+        still casting shadows and bouncing light); they are laid over the cached background. With
+        `object_visible` False the object is left out of the render altogether (the empty plate).
         """
         self.rig.rotation_euler = (0.0, 0.0, float(angle_rad))
+        for obj in self.objects:
+            obj.hide_render = not object_visible
         bpy.ops.render.render(write_still=True)
         frame = read_exr(self.exr)
         if self.background is not None:
@@ -505,7 +509,7 @@ def serve(conn: Connection) -> None:
                 command, arg = conn.recv()
                 if command == "close":
                     return
-                frame = scene.render(arg)
+                frame = scene.render(*arg)
                 frame["rgb"] = to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
                 frame.pop("alpha", None)
                 conn.send(("frame", frame))

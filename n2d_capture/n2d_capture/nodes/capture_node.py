@@ -1,0 +1,121 @@
+"""capture_node: the `capture` action: sweep the turntable, write a posed, masked capture session.
+
+Turns the plate through turntable_node's `turntable/rotate` action and takes frames from any camera
+driver's `image` + `camera_info` topics (remap them). A goal with `empty_plate: true` records the
+empty-plate background sweep and leaves the session unfinished; place the object and send the
+normal goal, which records (or resumes) the object sweep, computes poses and masks and publishes
+the session. One goal at a time; cancel stops after the current view and keeps what was taken.
+Parameters are the fields of `CaptureConfig` (sweep, board, masks, intrinsics) plus the topics.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import cv2
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+
+from n2d_capture.capture import CaptureConfig, capture
+from n2d_capture.nodes.ros_io import RosFrameSource, RosRotator
+from n2d_common.config import from_dict, merge, parse_mapping, to_dict
+from n2d_common.errors import Cancelled, N2DError
+from n2d_common.progress import Progress
+from n2d_common.ros import declare_config, image_msg, run_node, stamp_msg
+from n2d_interfaces.action import Capture
+
+
+@dataclass
+class CaptureNodeConfig:
+    """Parameters of capture_node."""
+
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    """Defaults of every capture (a goal's `views` and `config_yaml` override them)."""
+    image_topic: str = "camera/image_raw"
+    """Camera images (any encoding image_rgb reads: rgb8, bgr8, mono8, ...)."""
+    camera_info_topic: str = "camera/camera_info"
+    """Camera intrinsics."""
+    rotate_action: str = "turntable/rotate"
+    """turntable_node's Rotate action."""
+    use_header_stamp: bool = True
+    """Judge freshness by the image header stamp (false: by arrival time, for drivers with another clock)."""
+    preview_width: int = 160
+    """Width of the last-image preview in the feedback (px)."""
+
+
+class CaptureNode(Node):
+    NAME = "capture"
+
+    def __init__(self):
+        super().__init__(self.NAME)
+        self.cfg = declare_config(self, CaptureNodeConfig)
+        self.camera = RosFrameSource(self, self.cfg.image_topic, self.cfg.camera_info_topic,
+                                     self.cfg.use_header_stamp)
+        self._busy = threading.Lock()
+        self._cancel = threading.Event()
+        self.rotator = RosRotator(self, self.cfg.rotate_action, self._cancel)
+        self.server = ActionServer(self, Capture, "capture", execute_callback=self.execute_capture,
+                                   goal_callback=self.on_goal, cancel_callback=self.on_cancel,
+                                   callback_group=ReentrantCallbackGroup())
+        self.get_logger().info(f"capture ready: images from {self.camera.topic}")
+
+    def on_goal(self, goal: Capture.Goal) -> GoalResponse:
+        return GoalResponse.REJECT if self._busy.locked() or not goal.session_dir else GoalResponse.ACCEPT
+
+    def on_cancel(self, _goal_handle) -> CancelResponse:
+        self._cancel.set()
+        return CancelResponse.ACCEPT
+
+    def _goal_config(self, goal: Capture.Goal) -> CaptureConfig:
+        data = to_dict(self.cfg.capture)
+        if goal.views:
+            data["sweep"]["views"] = goal.views
+        return from_dict(CaptureConfig, merge(data, parse_mapping(goal.config_yaml, "goal config_yaml")))
+
+    def execute_capture(self, goal_handle) -> Capture.Result:
+        goal = goal_handle.request
+        result = Capture.Result(session_dir=goal.session_dir)
+        with self._busy:
+            self._cancel.clear()
+
+            def feedback(p: Progress) -> None:
+                fb = Capture.Feedback(progress=p.fraction, stage=p.stage, eta_s=p.eta_s,
+                                      view=p.info.get("view", 0), views_total=p.info.get("views", 0))
+                if "image" in p.info:
+                    rgb = p.info["image"]
+                    h = round(rgb.shape[0] * self.cfg.preview_width / rgb.shape[1])
+                    small = cv2.resize(rgb, (self.cfg.preview_width, h), interpolation=cv2.INTER_AREA)
+                    fb.last_image = image_msg(small, "rgb8", stamp_msg(0.0), "")
+                goal_handle.publish_feedback(fb)
+
+            try:
+                summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
+                                  empty_plate=goal.empty_plate, resume=goal.resume, progress=feedback,
+                                  cancel=self._cancel)
+                result.success = True
+                result.views_captured = summary["views"]
+                result.message = summary.get("message", "")
+                goal_handle.succeed()
+            except Cancelled as exc:
+                result.message = str(exc)
+                goal_handle.canceled()
+            except N2DError as exc:
+                result.message = str(exc)
+                self.get_logger().error(result.message)
+                goal_handle.abort()
+        return result
+
+    def destroy_node(self) -> None:
+        self._cancel.set()
+        self.server.destroy()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    run_node(CaptureNode, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""ROS adapters of the capture sweep: frames from any Image + CameraInfo pair, rotation via the Rotate action.
+
+`RosFrameSource` keeps the newest few frames of an image topic (best-effort, keep-last: a live
+stream is never queued) and hands out the first one exposed after a given time. `RosRotator`
+turns the plate through `turntable/rotate`, so the capture node never touches the serial port.
+Both block the calling (worker) thread, never an executor thread.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from n2d_capture.sweep import Frame
+from n2d_common.errors import Cancelled, DeviceError
+from n2d_common.ros import SENSOR_QOS, SafeActionClient, image_rgb, stamp_seconds
+from n2d_interfaces.action import Rotate
+
+
+class RosFrameSource:
+    """Frames of `image_topic`; K and distortion from `camera_info_topic`."""
+
+    def __init__(self, node: Node, image_topic: str, camera_info_topic: str, use_header_stamp: bool = True):
+        self._frames: deque[tuple[float, Image]] = deque(maxlen=4)
+        self._info: CameraInfo | None = None
+        self._cond = threading.Condition()
+        self._use_header = use_header_stamp
+        self.topic = node.resolve_topic_name(image_topic)
+        node.create_subscription(Image, image_topic, self._on_image, SENSOR_QOS)
+        node.create_subscription(CameraInfo, camera_info_topic, self._on_info, SENSOR_QOS)
+
+    def _on_image(self, msg: Image) -> None:
+        stamp = stamp_seconds(msg.header.stamp) if self._use_header else time.time()
+        with self._cond:
+            self._frames.append((stamp, msg))
+            self._cond.notify_all()
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        self._info = msg
+
+    def grab(self, after_s: float, timeout_s: float) -> Frame:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                for stamp, msg in self._frames:
+                    if stamp >= after_s:
+                        info = self._info
+                        K = None if info is None else np.array(info.k, dtype=float).reshape(3, 3)
+                        dist = None if info is None else np.array(info.d, dtype=float)
+                        return Frame(image_rgb(msg), stamp, K, dist)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    seen = f"last frame {time.time() - self._frames[-1][0]:.1f} s ago" if self._frames else "no frame"
+                    raise DeviceError(f"no fresh image on {self.topic} within {timeout_s:.0f} s ({seen})",
+                                      "check that the camera driver publishes (ros2 topic hz) and its clock")
+                self._cond.wait(min(left, 0.5))
+
+
+class RosRotator:
+    """Turns the plate through the `Rotate` action of turntable_node."""
+
+    def __init__(self, node: Node, action: str, cancel: threading.Event | None = None,
+                 server_timeout_s: float = 20.0, move_timeout_s: float = 120.0):
+        self.client = SafeActionClient(node, Rotate, action)
+        self.action = action
+        self.cancel = cancel
+        self.server_timeout_s = server_timeout_s
+        self.move_timeout_s = move_timeout_s
+
+    def _wait(self, future, timeout_s: float, what: str):
+        deadline = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise DeviceError(f"{what} on {self.action}: no answer within {timeout_s:.0f} s",
+                                  "is turntable_node running?")
+            time.sleep(0.01)
+        return future.result()
+
+    def rotate_to(self, angle_rad: float) -> float:
+        if not self.client.wait_for_server(timeout_sec=self.server_timeout_s):
+            raise DeviceError(f"turntable action {self.action} is not available", "start turntable_node")
+        handle = self._wait(self.client.send_goal_async(Rotate.Goal(angle_rad=angle_rad)), 10.0, "rotate goal")
+        if not handle.accepted:
+            raise DeviceError(f"turntable refused to rotate to {angle_rad:.3f} rad", "is another rotation running?")
+        result_future = handle.get_result_async()
+        deadline = time.monotonic() + self.move_timeout_s
+        while not result_future.done():
+            if self.cancel is not None and self.cancel.is_set():
+                self._wait(handle.cancel_goal_async(), 10.0, "cancel")
+                self._wait(result_future, 10.0, "cancelled rotation")
+                raise Cancelled("capture cancelled while the plate was turning", "run it again to resume")
+            if time.monotonic() > deadline:
+                raise DeviceError(f"rotation to {angle_rad:.3f} rad did not finish in {self.move_timeout_s:.0f} s")
+            time.sleep(0.01)
+        result = result_future.result().result
+        if not result.success:
+            raise DeviceError(f"turntable: {result.message}")
+        return result.angle_rad
