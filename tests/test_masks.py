@@ -2,8 +2,8 @@
 
 The views are 480x360 (focal scaled, the whole plate in view), with independent sensor noise on
 the view and on the empty-plate reference. Not smaller: the masks miss about a third of a pixel
-along the outline, which at 320x240 alone costs ~2% IoU on the bottle; benchmarks/masks.py reports
-640x480.
+along the outline, so IoU falls with the image size, and at 320x240 the bottle's mean (0.980) sits
+right on the 0.98 bound. benchmarks/masks.py reports 640x480.
 """
 
 import math
@@ -33,6 +33,8 @@ from n2d_sim.world import SimWorldConfig
 SIZE = dict(width=480, height=360, focal_px=450.0)
 """Three quarters of the default camera, same field of view."""
 ANGLES = (0.5, 2.6, 4.7)
+MISREGISTRATION_DEG = 0.3
+"""Plate angle error of a reference the masks must tolerate (a Dynamixel repeats to ~0.1 degree)."""
 
 
 class View:
@@ -43,6 +45,8 @@ class View:
         self.empty = cam.render(angle, object_visible=False)
         self.rgb = cam.noisy(self.frame.rgb, rng)
         self.reference = cam.noisy(self.empty.rgb, rng)
+        self.off_reference: np.ndarray | None = None
+        """The reference taken MISREGISTRATION_DEG past the view's plate angle (first view only)."""
         self.geometry = ViewGeometry.from_turntable(self.frame.K, self.frame.T_cam_turntable, angle,
                                                     cam.cfg.board)
 
@@ -55,6 +59,8 @@ def views() -> dict[str, list[View]]:
     for name in SAMPLE_OBJECTS:
         with SimCamera(SimWorldConfig(object=name, **SIZE)) as cam:
             out[name] = [View(cam, a, rng) for a in ANGLES]
+            off = cam.render(ANGLES[0] + math.radians(MISREGISTRATION_DEG), object_visible=False)
+            out[name][0].off_reference = cam.noisy(off.rgb, rng)
             again = cam.render(ANGLES[0] + 2 * math.pi, object_visible=False)
             assert again.render_s == 0.0 and again.rgb is out[name][0].empty.rgb
             assert cam.render(ANGLES[0]).rgb is out[name][0].frame.rgb  # cached apart from the empty plate
@@ -109,6 +115,13 @@ def test_mask_with_reference_matches_the_exact_mask(views, name):
     scores = [iou(foreground_mask(v.rgb, v.reference, v.geometry), v.frame.mask) for v in views[name]]
     assert np.mean(scores) >= EXPECTED_IOU["reference"], scores
     assert min(scores) >= EXPECTED_IOU["reference"] - 0.01, scores
+
+
+@pytest.mark.parametrize("name", SAMPLE_OBJECTS)
+def test_a_slightly_misregistered_reference_is_tolerated(views, name):
+    view = views[name][0]
+    score = iou(foreground_mask(view.rgb, view.off_reference, view.geometry), view.frame.mask)
+    assert score >= EXPECTED_IOU["reference"] - 0.01
 
 
 def test_mask_without_geometry_is_nearly_as_good(views):

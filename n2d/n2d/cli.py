@@ -93,6 +93,91 @@ def cmd_sim(args) -> int:
     return _launch("sim", pairs)
 
 
+def cmd_board(args) -> int:
+    from n2d_capture.board import BoardSpec
+    from n2d_capture.board_print import write_board_print
+
+    spec = _config(BoardSpec, args)
+    paths = write_board_print(spec, args.out, dpi=args.dpi)
+    w, h = spec.sheet_m
+    print(f"board: {spec.squares_x}x{spec.squares_y} squares of {spec.square_m * 1000:g} mm on a "
+          f"{w * 1000:.0f} x {h * 1000:.0f} mm sheet; print {paths['pdf']} at 100 % (actual size)")
+    print(f"board: spec in {paths['json']}, image in {paths['png']}")
+    return 0
+
+
+def _capture_io(args, cancel):
+    """(rotator, camera, cleanup) for `n2d capture` from its --port / --rotate-action / --camera options."""
+    import threading
+
+    from n2d_capture.turntable import Turntable, TurntableConfig
+
+    closers = []
+    node = None
+    if args.camera.startswith("cv:"):
+        from n2d_capture.camera_sources import OpenCVSource
+
+        camera = OpenCVSource(args.camera[3:])
+        closers.append(camera.close)
+    if args.camera.startswith("ros") or args.rotate_action:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        from n2d_common.ros import ros_environment
+
+        ros_environment()
+        rclpy.init()
+        node = rclpy.create_node("n2d_capture_cli")
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        closers += [executor.shutdown, node.destroy_node, rclpy.shutdown]
+    if args.camera.startswith("ros"):
+        from n2d_capture.nodes.ros_io import RosFrameSource
+
+        topic = args.camera.partition(":")[2] or "/n2d/camera/image_raw"
+        camera = RosFrameSource(node, topic, topic.rsplit("/", 1)[0] + "/camera_info")
+    elif not args.camera.startswith("cv:"):
+        raise N2DError(f"unknown camera {args.camera!r}", "use ros[:IMAGE_TOPIC] or cv:DEVICE_OR_FILE")
+    if args.rotate_action:
+        from n2d_capture.nodes.ros_io import RosRotator
+
+        rotator = RosRotator(node, args.rotate_action, cancel)
+    else:
+        rotator = Turntable(TurntableConfig(port=args.port, baud=args.baud, servo_id=args.servo_id)).open()
+        closers.insert(0, rotator.close)
+    return rotator, camera, closers
+
+
+def cmd_capture(args) -> int:
+    import threading
+
+    from n2d_capture.capture import CaptureConfig, capture
+
+    cfg = _config(CaptureConfig, args)
+    if args.views:
+        cfg.sweep.views = args.views
+    cancel = threading.Event()
+    rotator, camera, closers = _capture_io(args, cancel)
+    try:
+        summary = capture(args.session, cfg, rotator, camera, empty_plate=args.empty, overwrite=args.overwrite,
+                          progress=_progress_bar("capture"), cancel=cancel)
+    except KeyboardInterrupt:
+        cancel.set()
+        raise
+    finally:
+        for close in closers:
+            close()
+    if not summary["complete"]:
+        print(f"capture: {summary['views']} empty-plate views kept; {summary['message']}")
+        return 0
+    print(f"capture: {summary['views']} views ({summary['posed_from_board']} posed from the board, "
+          f"{summary['posed_from_servo']} from the servo angle); turntable fit residual "
+          f"{summary['fit_rotation_residual_deg']:.3f} deg / {summary['fit_translation_residual_mm']:.2f} mm")
+    print(f"capture: wrote {args.session}/ (transforms.json, capture.json, contact_sheet.png)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="n2d", description="n2d: from an object on a turntable to a live 6D pose estimator (ROS 2).",
@@ -110,6 +195,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace a finished run (only once the new one is done)")
     _add_config_options(p)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("board", help="write a print-ready ChArUco board (PDF + PNG + spec) for the plate",
+                       description="Write board.pdf (exact physical size: print at 100 %%), board.png (with its "
+                       "resolution) and board.json (the spec capture reads). Size it with --set, e.g. "
+                       "--set squares_x=6 --set square_m=0.035 --set plate_diameter_m=0.30.")
+    p.add_argument("out", type=Path, help="output directory")
+    p.add_argument("--dpi", type=int, default=300, help="resolution of the PNG and of the image in the PDF")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_board)
+
+    p = sub.add_parser("capture", help="sweep the turntable and write a posed, masked capture session",
+                       description="Turn the plate through --views stops and take a fresh frame at each. Run "
+                       "once with --empty on the empty plate (the background reference), then place the object "
+                       "and run again: the object sweep, camera poses from the ChArUco board (metric, in the "
+                       "turntable frame) and masks. A stopped sweep resumes when run again.")
+    p.add_argument("session", type=Path, help="capture session directory")
+    p.add_argument("--empty", action="store_true", help="record the empty-plate sweep")
+    p.add_argument("--views", type=int, default=0, help="stops per revolution (default: the config's, 36)")
+    p.add_argument("--camera", default="ros", help="ros[:IMAGE_TOPIC] (default /n2d/camera/image_raw) or "
+                   "cv:DEVICE_INDEX_OR_VIDEO_FILE")
+    p.add_argument("--port", default="/dev/ttyUSB0", help="serial port of the turntable servo")
+    p.add_argument("--baud", type=int, default=57600, help="servo baud rate")
+    p.add_argument("--servo-id", type=int, default=1, help="servo Dynamixel ID")
+    p.add_argument("--rotate-action", default="", help="turn the plate through this Rotate action (e.g. "
+                   "/n2d/turntable/rotate, when turntable_node owns the port) instead of --port")
+    p.add_argument("--overwrite", action="store_true", help="discard an existing or unfinished session")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("sim", help="start the simulated world until Ctrl-C",
                        description="Start the simulated servo (on a pty at --port) and the simulated camera "

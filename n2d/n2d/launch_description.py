@@ -44,6 +44,14 @@ class NodeSpec:
     """Node namespace."""
     parameters: dict = field(default_factory=dict)
     """Parameter name -> value; string values may contain `${argument}`."""
+    condition: str = ""
+    """Start the node only when this (e.g. `${sim}`) is true; empty: always."""
+
+    def enabled(self, args: dict[str, str]) -> bool:
+        if not self.condition:
+            return True
+        value = substitute(self.condition, args)
+        return value is True or str(value).lower() in ("true", "1", "yes", "on")
 
     @property
     def module(self) -> str:
@@ -127,6 +135,7 @@ def substitute(value: object, args: dict[str, str]) -> object:
 def ros_launch_description(path: str | Path):
     """A `launch.LaunchDescription` of the YAML at `path`, for `ros2 launch` on a machine with ROS installed."""
     from launch.actions import DeclareLaunchArgument
+    from launch.conditions import IfCondition
     from launch.substitutions import LaunchConfiguration, TextSubstitution
     from launch_ros.actions import Node
 
@@ -150,6 +159,7 @@ def ros_launch_description(path: str | Path):
     actions = [DeclareLaunchArgument(k, default_value=a.default, description=a.description)
                for k, a in spec.arguments.items()]
     actions += [Node(package=n.package, executable=n.executable, name=n.name, namespace=n.namespace,
-                     parameters=[{k: subs(v) for k, v in n.parameters.items()}], output="screen", emulate_tty=True)
+                     parameters=[{k: subs(v) for k, v in n.parameters.items()}], output="screen", emulate_tty=True,
+                     condition=IfCondition(subs(n.condition)) if n.condition else None)
                 for n in spec.nodes]
     return LaunchDescription(actions)

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 
 from n2d.launch_description import LaunchSpec, resolve_arguments, substitute
+from n2d_common.process import die_with_parent
 from n2d_common.ros import ros_environment
 
 
@@ -51,10 +52,10 @@ class Launch:
         self._threads: list[threading.Thread] = []
 
     def start(self) -> Launch:
-        for node in self.spec.nodes:
+        for node in (n for n in self.spec.nodes if n.enabled(self.args)):
             proc = subprocess.Popen(node_command(node, self.args), env=self.env, stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                                    start_new_session=True)
+                                    start_new_session=True, preexec_fn=die_with_parent)
             self.procs[node.name] = proc
             t = threading.Thread(target=self._forward, args=(node.name, proc), daemon=True)
             t.start()
@@ -70,7 +71,12 @@ class Launch:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
 
     def wait(self, poll_s: float = 0.2) -> int:
-        """Block until a node exits (or Ctrl-C); stop the others and return the first non-zero exit code."""
+        """Block until a node exits (or Ctrl-C, or SIGTERM); stop the others and return the first non-zero exit code."""
+        def terminate(_sig, _frame):
+            raise KeyboardInterrupt
+
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, terminate) if main else None
         try:
             while not self.dead():
                 time.sleep(poll_s)
@@ -79,6 +85,8 @@ class Launch:
         except KeyboardInterrupt:
             self.log("[launch] Ctrl-C: stopping all nodes")
         finally:
+            if main:
+                signal.signal(signal.SIGTERM, previous)
             self.stop()
         codes = [c for _, c in self.dead() if c not in (0, -signal.SIGINT, -signal.SIGTERM)]
         return codes[0] if codes else 0

@@ -55,7 +55,7 @@ class CaptureConfig:
 
 
 def capture(session_dir: str | Path, cfg: CaptureConfig, rotator: Rotator, camera: FrameSource, *,
-            empty_plate: bool = False, resume: bool = True, overwrite: bool = False,
+            empty_plate: bool = False, overwrite: bool = False,
             progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
     """Record one sweep into `session_dir` (see the module doc); returns a summary dict.
 
@@ -63,7 +63,7 @@ def capture(session_dir: str | Path, cfg: CaptureConfig, rotator: Rotator, camer
     Views already taken are kept in `<session_dir>.partial` and the next call resumes there.
     """
     total = cfg.sweep.views
-    with stage_output(session_dir, "capture_session", overwrite=overwrite, resume=resume,
+    with stage_output(session_dir, "capture_session", overwrite=overwrite, resume=not overwrite,
                       config=to_dict(cfg)) as out:
         def sweep_progress(p: Progress) -> None:
             p.info["views"] = total
@@ -113,7 +113,13 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
     # The empty plate shows the whole board: fit the axis on those views when the sweep has them.
     fit_views = [empty[i] for i in sorted(empty)] if len(empty) >= 3 else views
     fit_poses = [pose(empty_detections[v["index"]]) for v in fit_views] if fit_views is not views else poses
-    fit = fit_turntable([p.T_cam_board if p else None for p in fit_poses], [v["angle_rad"] for v in fit_views])
+    fit_angles = [v["angle_rad"] for v in fit_views]  # None: an imported photo of unknown plate angle
+    fit = fit_turntable([p.T_cam_board if p else None for p in fit_poses], None if None in fit_angles else fit_angles)
+    unplaced = [v.get("source", v["file"]) for v, p in zip(views, poses) if p is None and v["angle_rad"] is None]
+    if unplaced:
+        raise CalibrationError(f"{len(unplaced)} view(s) have no board pose and no plate angle, so nothing can "
+                               f"place them: {', '.join(unplaced)}",
+                               "give the plate angle of every photo, or leave out those that hide the board")
 
     records, frames, sheet = [], [], []
     for i, (view, img) in enumerate(zip(views, images)):
@@ -132,7 +138,8 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
                         "board_corners": len(detections[i]) if detections[i] is not None else 0,
                         "board_rms_px": poses[i].rms_px if poses[i] else None,
                         "mask_pixels": int(mask.sum()), "mask_method": "reference" if ref is not None else "geometry"})
-        sheet.append(_overlay(img, mask, intr, inv_T(T_turntable_cam), f"{math.degrees(view['angle_rad']):.0f} deg"))
+        label = f"{math.degrees(view['angle_rad']):.0f} deg" if view["angle_rad"] is not None else f"#{view['index']}"
+        sheet.append(_overlay(img, mask, intr, inv_T(T_turntable_cam), label))
     progress(Progress(0.95, "writing"))
     atomic_write_json(directory / "transforms.json", transforms_json(intr.K, intr.dist, width, height, frames))
     from_board = sum(r["pose_source"] == "board" for r in records)

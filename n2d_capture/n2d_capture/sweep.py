@@ -59,12 +59,14 @@ class SweepConfig:
     """Plate angle of the first stop."""
     frame_timeout_s: float = 10.0
     """How long to wait for a fresh frame after the plate settled."""
+    first_frame_timeout_s: float = 60.0
+    """How long to wait for the camera's first frame (drivers and simulators take a while to start)."""
 
     def __post_init__(self):
         if self.views < 1:
             raise ValueError("views must be >= 1")
-        if self.frame_timeout_s <= 0:
-            raise ValueError("frame_timeout_s must be > 0")
+        if self.frame_timeout_s <= 0 or self.first_frame_timeout_s <= 0:
+            raise ValueError("frame_timeout_s and first_frame_timeout_s must be > 0")
 
     def angles(self) -> list[float]:
         return [self.start_angle_rad + 2 * math.pi * i / self.views for i in range(self.views)]
@@ -88,6 +90,9 @@ def run_sweep(directory: Path, name: str, cfg: SweepConfig, rotator: Rotator, ca
         raise ContractError(f"{directory} holds a {name} sweep of more views than {cfg.views}",
                             "re-run with the same number of views, or --overwrite")
     (directory / name).mkdir(parents=True, exist_ok=True)
+    if len(views) < len(angles):
+        progress(Progress(len(views) / len(angles), "waiting", message="for the camera's first frame"))
+        camera.grab(0.0, cfg.first_frame_timeout_s)
     eta = Eta()
     for i in range(len(views), len(angles)):
         if cancel is not None and cancel.is_set():

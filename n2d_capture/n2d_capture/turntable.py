@@ -506,6 +506,13 @@ class Turntable:
                 except (OSError, termios.error) as exc:  # serial.SerialException is an OSError
                     self._port.is_using = False
                     raise _PortLost(f"{type(exc).__name__}: {exc}") from exc
+                except (IndexError, ValueError):
+                    # The SDK indexes into a reply it could not fully read (a late, partial or garbled
+                    # packet, seen on loaded machines): drop the rest and retry like a CRC error.
+                    self._port.is_using = False
+                    self._port.clearPort()
+                    corrupt = True
+                    continue
                 if result == COMM_SUCCESS:
                     self._check_status(error, what, check_alert)
                     return value

@@ -30,6 +30,7 @@ import numpy as np
 
 from n2d_common.config import to_dict
 from n2d_common.errors import DeviceError
+from n2d_common.process import die_with_parent
 from n2d_sim import world
 from n2d_sim.world import SimWorldConfig
 
@@ -98,7 +99,8 @@ class SimCamera:
                 # Blender prints render progress on stdout: keep it out of the caller's output.
                 self._proc = subprocess.Popen(
                     [sys.executable, "-m", "n2d_sim.render_worker", str(theirs.fileno())],
-                    pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                    pass_fds=[theirs.fileno()], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    preexec_fn=die_with_parent)
             self._conn = Connection(ours.detach())
             try:
                 self._conn.send(to_dict(self.cfg))

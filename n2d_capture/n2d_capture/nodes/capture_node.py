@@ -92,7 +92,7 @@ class CaptureNode(Node):
 
             try:
                 summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
-                                  empty_plate=goal.empty_plate, resume=goal.resume, progress=feedback,
+                                  empty_plate=goal.empty_plate, overwrite=goal.overwrite, progress=feedback,
                                   cancel=self._cancel)
                 result.success = True
                 result.views_captured = summary["views"]

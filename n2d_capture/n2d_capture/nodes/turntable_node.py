@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -19,7 +20,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from n2d_capture.turntable import Turntable, TurntableConfig
-from n2d_common.errors import Cancelled, N2DError
+from n2d_common.errors import Cancelled, DeviceError, N2DError
 from n2d_common.ros import PUBLISH_QOS, declare_config, run_node
 from n2d_interfaces.action import Rotate
 
@@ -34,6 +35,8 @@ class TurntableNodeConfig:
     """Rate of turntable/joint_states."""
     joint_name: str = "turntable_plate"
     """Joint name in the JointState messages."""
+    connect_timeout_s: float = 5.0
+    """Keep trying to open the servo this long at start-up (the adapter or simulator may come up later)."""
 
     def __post_init__(self):
         if not 0 < self.joint_state_rate_hz <= 200:
@@ -46,7 +49,7 @@ class TurntableNode(Node):
     def __init__(self):
         super().__init__(self.NAME)
         self.cfg = declare_config(self, TurntableNodeConfig)
-        self.turntable = Turntable(self.cfg.turntable).open()
+        self.turntable = self._connect()
         self._busy = threading.Lock()
         self._cancel: threading.Event | None = None
         self.state_pub = self.create_publisher(JointState, "turntable/joint_states", PUBLISH_QOS)
@@ -57,6 +60,16 @@ class TurntableNode(Node):
                                           callback_group=ReentrantCallbackGroup())
         self.get_logger().info(f"turntable servo {self.turntable.model_number} id {self.cfg.turntable.servo_id} "
                                f"on {self.cfg.turntable.port} at {math.degrees(self.turntable.angle()):.1f} deg")
+
+    def _connect(self) -> Turntable:
+        deadline = time.monotonic() + self.cfg.connect_timeout_s
+        while True:
+            try:
+                return Turntable(self.cfg.turntable).open()
+            except DeviceError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.25)
 
     def on_timer(self) -> None:
         try:

@@ -4,6 +4,8 @@ Publishes (under its namespace) `camera/image_raw` (rgb8, sensor noise), `camera
 (REP 103 optical frame, exact K), and the ground truth of each frame with the same stamp:
 `sim/object_pose` (PoseStamped, T_cam_obj) and `sim/object_mask` (mono8, 255 = object).
 It renders (in a bpy worker process) whenever the true plate angle on `sim/plate_state` changes.
+The service `sim/set_object_visible` (std_srvs/SetBool) lifts the object off the plate and puts it
+back: what a person does for the empty-plate background sweep.
 While the plate stands still it republishes the last render with fresh noise at `rate_hz`, stamped
 now; while it moves it publishes each finished render stamped with the time of the angle it shows,
 so the rate drops during motion rather than showing an old scene with a new stamp.
@@ -19,6 +21,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_srvs.srv import SetBool
 
 from n2d_common.ros import (
     PUBLISH_QOS,
@@ -66,9 +69,11 @@ class SimCameraNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, "sim/object_pose", PUBLISH_QOS)
         self.mask_pub = self.create_publisher(Image, "sim/object_mask", PUBLISH_QOS)
         self.create_subscription(JointState, "sim/plate_state", self.on_plate_state, SENSOR_QOS)
+        self.create_service(SetBool, "sim/set_object_visible", self.on_set_visible)
         self._changed = threading.Condition()
         self._angle: tuple[float, float] | None = None  # (angle_rad, stamp_s) of the latest plate state
         self._frame: SimFrame | None = None
+        self._visible = True
         self._running = True
         self.camera = SimCamera(self.cfg.world)
         self.camera.start()
@@ -83,22 +88,33 @@ class SimCameraNode(Node):
             self._angle = (float(msg.position[0]), msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
             self._changed.notify()
 
+    def on_set_visible(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        with self._changed:
+            self._visible = request.data
+            self._changed.notify()
+        response.success = True
+        response.message = "object on the plate" if request.data else "object lifted off the plate"
+        return response
+
+    def _current(self, frame: SimFrame | None, angle: tuple[float, float] | None) -> bool:
+        """Whether `frame` shows the scene as it is now."""
+        return (frame is not None and angle is not None and frame.object_visible == self._visible
+                and abs(angle[0] - frame.angle_rad) < self.cfg.angle_epsilon_rad)
+
     def on_timer(self) -> None:
         frame, angle = self._frame, self._angle
-        if frame is not None and angle is not None and abs(angle[0] - frame.angle_rad) < self.cfg.angle_epsilon_rad:
+        if self._current(frame, angle):
             self.publish(frame, time.time())
 
     def _render_loop(self) -> None:
         while self._running:
             with self._changed:
-                while self._running and (self._angle is None or (
-                        self._frame is not None
-                        and abs(self._angle[0] - self._frame.angle_rad) < self.cfg.angle_epsilon_rad)):
+                while self._running and (self._angle is None or self._current(self._frame, self._angle)):
                     self._changed.wait(0.5)
                 if not self._running:
                     return
-                angle, stamp = self._angle
-            frame = self.camera.render(angle)
+                (angle, stamp), visible = self._angle, self._visible
+            frame = self.camera.render(angle, object_visible=visible)
             self._frame = frame
             self.publish(frame, stamp)
 

@@ -1,0 +1,9 @@
+"""ROS 2 launch file of the capture stage; the node list lives in capture.yaml (shared with `n2d launch capture`)."""
+
+from pathlib import Path
+
+from n2d.launch_description import ros_launch_description
+
+
+def generate_launch_description():
+    return ros_launch_description(Path(__file__).with_name("capture.yaml"))

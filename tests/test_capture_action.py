@@ -1,0 +1,71 @@
+"""The Capture action across processes, as a task planner calls it: `n2d launch capture` (simulated servo and
+camera, turntable_node, capture_node), an rclpy client here: empty-plate sweep, object sweep, complete session."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from action_msgs.msg import GoalStatus
+from rclpy.executors import SingleThreadedExecutor
+from std_srvs.srv import SetBool
+
+from n2d.launch_description import load
+from n2d.launcher import Launch
+from n2d_capture.session import read_session
+from n2d_common.ros import SafeActionClient
+from n2d_interfaces.action import Capture
+
+VIEWS = 36
+
+
+def _wait(future, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while not future.done():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+    return future.result()
+
+
+@pytest.mark.timeout(900)
+def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
+    logs = []
+    args = {"port": str(tmp_path / "ttyDXL"), "control": str(tmp_path / "servo.ctl")}
+    with Launch(load("capture"), args, log=logs.append) as launch:
+        rclpy.init(domain_id=ros_domain)
+        node = rclpy.create_node("test_planner")
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        try:
+            client = SafeActionClient(node, Capture, "/n2d/capture")
+            lift = node.create_client(SetBool, "/n2d/sim/set_object_visible")
+            assert client.wait_for_server(timeout_sec=60) and lift.wait_for_service(timeout_sec=60), logs[-20:]
+            session = str(tmp_path / "session")
+            results = []
+            for empty in (True, False):
+                assert _wait(lift.call_async(SetBool.Request(data=not empty)), 30).success
+                feedback = []
+                goal = _wait(client.send_goal_async(Capture.Goal(session_dir=session, views=VIEWS, empty_plate=empty,
+                                                                 config_yaml="sweep: {frame_timeout_s: 60}"),
+                                                    feedback_callback=feedback.append), 30)
+                assert goal.accepted
+                result = _wait(goal.get_result_async(), 800)
+                assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, "\n".join(logs[-40:]))
+                assert result.result.views_captured == VIEWS
+                assert any(f.feedback.last_image.width for f in feedback)
+                results.append(result.result)
+            assert "place the object" in results[0].message
+            assert not launch.dead()
+        finally:
+            (tmp_path / "launch.log").write_text("\n".join(logs))
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.shutdown()
+    s = read_session(session)
+    assert len(s.views) == VIEWS and s.width == 640
+    assert all(v.mask is not None and v.mask.is_file() for v in s.views)
+    # consecutive cameras are 10 degrees apart around the turntable axis, at the same height
+    heights = [v.T_turntable_cam[2, 3] for v in s.views]
+    assert np.ptp(heights) < 0.002
