@@ -44,7 +44,7 @@ def test_capture_session_poses_and_masks_match_ground_truth(tmp_path, sim):
         class Recording:  # remember the true plate angle of each view (ground truth)
             def grab(self, after_s, timeout_s):
                 frame = source.grab(after_s, timeout_s)
-                truth[len(truth)] = (source.last.angle_rad, source.last.mask)
+                truth[frame.stamp_s] = (source.last.angle_rad, source.last.mask)
                 return frame
 
         summary = capture(out, cfg, table, Recording())
@@ -54,8 +54,9 @@ def test_capture_session_poses_and_masks_match_ground_truth(tmp_path, sim):
     assert len(session.views) == 8 and np.allclose(session.K, camera.K)
     T_cam_tt = T_cam_turntable(world)
     rot_err, trans_err, ious = [], [], []
-    for i, view in enumerate(session.views):
-        angle, gt_mask = truth[i]
+    stamps = [v["stamp_s"] for v in json.loads((out / "capture.json").read_text())["views"]]
+    for view, stamp in zip(session.views, stamps):
+        angle, gt_mask = truth[stamp]
         gt = inv_T(T_cam_tt @ rot_z(angle))  # camera in the plate-attached turntable frame
         rot_err.append(_rotation_deg(view.T_turntable_cam[:3, :3].T @ gt[:3, :3]))
         trans_err.append(1000 * np.linalg.norm(view.T_turntable_cam[:3, 3] - gt[:3, 3]))

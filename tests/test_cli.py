@@ -86,3 +86,9 @@ def test_launch_files_are_real_ros2_launch_files():
         assert "def generate_launch_description" in text and "ros_launch_description" in text
         assert f.with_name(f.name.replace(".launch.py", ".yaml")).is_file()
         load(f.name.replace(".launch.py", ""))
+
+
+def test_capture_import_of_a_missing_folder(tmp_path, capsys):
+    assert main(["capture", "import", str(tmp_path / "nope"), str(tmp_path / "session")]) == 2
+    assert "does not exist" in _error_lines(capsys)[0]
+    assert not (tmp_path / "session").exists() and not (tmp_path / "session.partial").exists()

@@ -11,7 +11,7 @@ import yaml
 
 from n2d_capture.board import CalibrationError
 from n2d_capture.capture import CaptureConfig
-from n2d_capture.importer import import_photos
+from n2d_capture.importer import import_photos, load_intrinsics, read_angles
 from n2d_capture.masks import iou
 from n2d_capture.session import read_session
 from n2d_common.errors import ConfigError, ContractError
@@ -159,3 +159,31 @@ def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, shots):
         import_photos(photos, out, cfg, angles_deg=ANGLES_DEG)
     assert sorted(p.name for p in out.iterdir()) == ["n2d.json"]
     assert not out.with_name("session.partial").exists()
+
+
+def test_angle_and_intrinsics_file_formats(tmp_path):
+    photos = [tmp_path / n for n in ("b.jpg", "a.PNG")]
+    for p in photos:
+        p.write_bytes(b"")
+    photos = sorted(photos)
+    assert read_angles(tmp_path, photos) == (None, None)
+    (tmp_path / "angles.json").write_text(json.dumps({"b.jpg": 90, "a.PNG": -10.5}))
+    assert read_angles(tmp_path, photos) == ([-10.5, 90.0], "angles.json")
+    (tmp_path / "angles.json").write_text("[1, 2]")
+    assert read_angles(tmp_path, photos) == ([1.0, 2.0], "angles.json")
+    (tmp_path / "angles.csv").write_text("a.PNG,0\n")
+    with pytest.raises(ConfigError, match="keep one"):
+        read_angles(tmp_path, photos)
+    (tmp_path / "angles.json").unlink()
+    (tmp_path / "angles.csv").write_text("# turntable log\nfile,angle_deg\n\na.PNG, 0\nb.jpg,abc\n")
+    with pytest.raises(ConfigError, match="row 5: 'abc'"):
+        read_angles(tmp_path, photos)
+
+    K = [[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]]
+    (tmp_path / "intrinsics.json").write_text(json.dumps({"K": K, "dist": [0.1, 0, 0, 0, 0], "width": 640,
+                                                          "height": 480}))
+    intr = load_intrinsics(tmp_path / "intrinsics.json")
+    assert np.allclose(intr.K, K) and intr.dist[0] == 0.1 and (intr.width, intr.height) == (640, 480)
+    (tmp_path / "camera.yaml").write_text("image_width: 640\ncamera_matrix: {rows: 3, cols: 3, data: [1, 0, 0]}\n")
+    with pytest.raises(ConfigError, match="image_height|9 numbers"):
+        load_intrinsics(tmp_path / "camera.yaml")

@@ -178,6 +178,18 @@ def cmd_capture(args) -> int:
     return 0
 
 
+def cmd_capture_import(args) -> int:
+    from n2d_capture.capture import CaptureConfig
+    from n2d_capture.importer import import_photos
+
+    cfg = _config(CaptureConfig, args)
+    summary = import_photos(args.photos, args.out, cfg, empty_dir=args.empty, intrinsics=args.intrinsics,
+                            overwrite=args.overwrite, progress=_progress_bar("import"))
+    print(f"import: {summary['views']} views ({summary['posed_from_board']} posed from the board); "
+          f"wrote {args.out}/ (transforms.json, capture.json, contact_sheet.png)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="n2d", description="n2d: from an object on a turntable to a live 6D pose estimator (ROS 2).",
@@ -224,6 +236,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p)
     p.set_defaults(func=cmd_capture)
 
+    p = sub.add_parser("capture-import", aliases=["capture import"],
+                       help="turn a folder of photos taken elsewhere into a capture session (n2d capture import)",
+                       description="Import stills (DSLR, phone, another turntable) with the ChArUco board in view: "
+                       "the same board, pose and mask code as a capture. Optional: empty-plate photos taken at the "
+                       "same angles (--empty), per-photo plate angles in PHOTOS/angles.csv (file,angle_deg) or "
+                       "angles.json, and the camera intrinsics (--intrinsics; default: calibrated from the board).")
+    p.add_argument("photos", type=Path, help="folder of .jpg/.png photos (sorted by name)")
+    p.add_argument("out", type=Path, help="capture session directory to write")
+    p.add_argument("--empty", type=Path, help="folder of empty-plate photos, same count and order")
+    p.add_argument("--intrinsics", type=Path, help="intrinsics JSON/YAML (n2d or ROS camera_info format)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing session")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_capture_import)
+
     p = sub.add_parser("sim", help="start the simulated world until Ctrl-C",
                        description="Start the simulated servo (on a pty at --port) and the simulated camera "
                        "(topics under /n2d). Point the turntable driver at --port.")
@@ -243,6 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["capture", "import"]:
+        argv[:2] = ["capture-import"]
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

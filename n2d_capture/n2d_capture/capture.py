@@ -138,7 +138,8 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
                         "board_corners": len(detections[i]) if detections[i] is not None else 0,
                         "board_rms_px": poses[i].rms_px if poses[i] else None,
                         "mask_pixels": int(mask.sum()), "mask_method": "reference" if ref is not None else "geometry"})
-        label = f"{math.degrees(view['angle_rad']):.0f} deg" if view["angle_rad"] is not None else f"#{view['index']}"
+        angle = view["angle_rad"]
+        label = f"{math.degrees(angle):.0f} deg" if angle is not None else f"view {view['index']}"
         sheet.append(_overlay(img, mask, intr, inv_T(T_turntable_cam), label))
     progress(Progress(0.95, "writing"))
     atomic_write_json(directory / "transforms.json", transforms_json(intr.K, intr.dist, width, height, frames))

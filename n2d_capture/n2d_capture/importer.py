@@ -7,18 +7,17 @@ transforms.json, capture.json (with an `import` section naming the source files)
 
 Inputs:
 - Photos: the `.png`, `.jpg` and `.jpeg` files (any case, hidden ones skipped) of a folder, in name
-  order, all of one size.
-  JPEG EXIF orientation is applied, as a photo viewer shows them. The ChArUco board (`cfg.board`)
-  lies on the plate under the object and the camera stays put while the plate turns.
+  order, all of one size; JPEG EXIF orientation is applied, as a photo viewer shows them. The ChArUco
+  board (`cfg.board`) lies on the plate under the object and the camera stays put while the plate turns.
 - Empty-plate photos (optional, recommended: masks are much better with them): a second folder
   with as many photos, in the same name order, taken at the same plate angles without the object.
 - Plate angles (optional): `angles_deg`, one per photo in name order, or else a file in the photos
   folder: `angles.csv`, rows `file,angle_deg` (a header row, blank lines and `#` comments are
-  skipped), or `angles.json`, `{"IMG_0001.jpg": 0.0, ...}` or a list in name order. Degrees,
-  counter-clockwise seen from above, any zero. Every photo needs one; the empty-plate photos share them.
-  Without angles each view is posed from its own board pose, and a view whose board the object hides
-  is an error naming it (nothing else could place it); with angles such a view is posed from its
-  angle, as the servo angle places it in a capture.
+  skipped), or `angles.json`, `{"IMG_0001.jpg": 0.0, ...}` or a list in name order (the argument
+  wins over a file). Degrees, counter-clockwise seen from above, any zero. Every photo needs one; the
+  empty-plate photos share them. Without angles each view is posed from its own board pose, and a
+  view whose board the object hides is an error naming it (nothing else could place it); with angles
+  such a view is posed from its angle, as the servo angle places it in a capture.
 - Intrinsics (optional): a file of the camera's calibration, else the focal length is calibrated from
   the board in the photos (principal point at the image centre, square pixels, no distortion: all
   the board views are one plane). JSON/YAML of `Intrinsics.to_dict()` (`K`, `dist`, `width`,
