@@ -1,20 +1,17 @@
 """The Capture action across processes, as a task planner calls it: `n2d launch capture` (simulated servo and
 camera, turntable_node, capture_node), an rclpy client here: empty-plate sweep, object sweep, complete session."""
 
-import threading
 import time
 
 import numpy as np
 import pytest
-import rclpy
 from action_msgs.msg import GoalStatus
-from rclpy.executors import SingleThreadedExecutor
 from std_srvs.srv import SetBool
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_capture.session import read_session
-from n2d_common.ros import SafeActionClient
+from n2d_common.ros import SafeActionClient, background_node
 from n2d_interfaces.action import Capture
 
 VIEWS = 36
@@ -33,12 +30,7 @@ def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
     logs = []
     args = {"port": str(tmp_path / "ttyDXL"), "control": str(tmp_path / "servo.ctl")}
     with Launch(load("capture"), args, log=logs.append) as launch:
-        rclpy.init(domain_id=ros_domain)
-        node = rclpy.create_node("test_planner")
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        threading.Thread(target=executor.spin, daemon=True).start()
-        try:
+        with background_node("test_planner", ros_domain) as node:
             client = SafeActionClient(node, Capture, "/n2d/capture")
             lift = node.create_client(SetBool, "/n2d/sim/set_object_visible")
             assert client.wait_for_server(timeout_sec=60) and lift.wait_for_service(timeout_sec=60), logs[-20:]
@@ -58,14 +50,9 @@ def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
                 results.append(result.result)
             assert "place the object" in results[0].message
             assert not launch.dead()
-        finally:
-            (tmp_path / "launch.log").write_text("\n".join(logs))
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.shutdown()
     s = read_session(session)
     assert len(s.views) == VIEWS and s.width == 640
     assert all(v.mask is not None and v.mask.is_file() for v in s.views)
-    # consecutive cameras are 10 degrees apart around the turntable axis, at the same height
+    # the camera is fixed and the plate turns: in the plate's frame every view is at the same height
     heights = [v.T_turntable_cam[2, 3] for v in s.views]
     assert np.ptp(heights) < 0.002

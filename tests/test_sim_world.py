@@ -3,20 +3,18 @@ servo's pty, rclpy subscribers in this process, the camera's ground truth checke
 
 import math
 import signal
-import threading
 import time
 
 import cv2
 import numpy as np
 import pytest
-import rclpy
 import trimesh
-from rclpy.executors import SingleThreadedExecutor
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_capture.turntable import Turntable, TurntableConfig
 from n2d_common.frames import project
+from n2d_common.ros import background_node
 from n2d_sim.objects import sample_object_dir
 from n2d_sim.ros_client import SimCameraClient
 from n2d_sim.servo import ServoControl
@@ -38,19 +36,8 @@ def sim_world(tmp_path, ros_domain):
     logs = []
     with Launch(load("sim"), args, log=logs.append) as launch:
         _wait_path(tmp_path / "ttyDXL", launch)
-        rclpy.init(domain_id=ros_domain)
-        node = rclpy.create_node("test_sim_world")
-        client = SimCameraClient(node)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        spin = threading.Thread(target=executor.spin, daemon=True)
-        spin.start()
-        try:
-            yield launch, client, args, logs
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.shutdown()
+        with background_node("test_sim_world", ros_domain) as node:
+            yield launch, SimCameraClient(node), args, logs
 
 
 @pytest.mark.timeout(300)

@@ -2,18 +2,15 @@
 this process rotates, watches feedback, cancels; joint states arrive; a bad port fails with one line."""
 
 import math
-import threading
 import time
 
 import pytest
-import rclpy
 from action_msgs.msg import GoalStatus
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 
 from n2d.launch_description import LaunchSpec, NodeSpec
 from n2d.launcher import Launch
-from n2d_common.ros import SENSOR_QOS, SafeActionClient
+from n2d_common.ros import SENSOR_QOS, SafeActionClient, background_node
 from n2d_interfaces.action import Rotate
 
 
@@ -26,15 +23,8 @@ def _turntable_launch(port: str, logs: list) -> Launch:
 
 @pytest.fixture
 def client_node(ros_domain):
-    rclpy.init(domain_id=ros_domain)
-    node = rclpy.create_node("test_turntable_client")
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
-    yield node
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.shutdown()
+    with background_node("test_turntable_client", ros_domain) as node:
+        yield node
 
 
 def _wait(future, timeout_s=30):

@@ -7,6 +7,7 @@ and keeps finished work, so the same command resumes.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -106,47 +107,33 @@ def cmd_board(args) -> int:
     return 0
 
 
-def _capture_io(args, cancel):
-    """(rotator, camera, cleanup) for `n2d capture` from its --port / --rotate-action / --camera options."""
-    import threading
-
+def _capture_io(args, cancel, stack):
+    """(rotator, camera) for `n2d capture` from its --port / --rotate-action / --camera options; what they
+    hold open is closed by the ExitStack `stack`."""
     from n2d_capture.turntable import Turntable, TurntableConfig
+    from n2d_common.ros import background_node
 
-    closers = []
-    node = None
-    if args.camera.startswith("cv:"):
+    kind, _, where = args.camera.partition(":")
+    if kind not in ("ros", "cv") or (kind == "cv" and not where):
+        raise N2DError(f"unknown camera {args.camera!r}", "use ros[:IMAGE_TOPIC] or cv:DEVICE_OR_FILE")
+    node = background_node("n2d_capture_cli") if kind == "ros" or args.rotate_action else None
+    node = stack.enter_context(node) if node is not None else None
+    if kind == "cv":
         from n2d_capture.camera_sources import OpenCVSource
 
-        camera = OpenCVSource(args.camera[3:])
-        closers.append(camera.close)
-    if args.camera.startswith("ros") or args.rotate_action:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-
-        from n2d_common.ros import ros_environment
-
-        ros_environment()
-        rclpy.init()
-        node = rclpy.create_node("n2d_capture_cli")
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        threading.Thread(target=executor.spin, daemon=True).start()
-        closers += [executor.shutdown, node.destroy_node, rclpy.shutdown]
-    if args.camera.startswith("ros"):
+        camera = OpenCVSource(where)
+        stack.callback(camera.close)
+    else:
         from n2d_capture.nodes.ros_io import RosFrameSource
 
-        topic = args.camera.partition(":")[2] or "/n2d/camera/image_raw"
+        topic = where or "/n2d/camera/image_raw"
         camera = RosFrameSource(node, topic, topic.rsplit("/", 1)[0] + "/camera_info")
-    elif not args.camera.startswith("cv:"):
-        raise N2DError(f"unknown camera {args.camera!r}", "use ros[:IMAGE_TOPIC] or cv:DEVICE_OR_FILE")
     if args.rotate_action:
         from n2d_capture.nodes.ros_io import RosRotator
 
-        rotator = RosRotator(node, args.rotate_action, cancel)
-    else:
-        rotator = Turntable(TurntableConfig(port=args.port, baud=args.baud, servo_id=args.servo_id)).open()
-        closers.insert(0, rotator.close)
-    return rotator, camera, closers
+        return RosRotator(node, args.rotate_action, cancel), camera
+    return stack.enter_context(Turntable(TurntableConfig(port=args.port, baud=args.baud,
+                                                         servo_id=args.servo_id))), camera
 
 
 def cmd_capture(args) -> int:
@@ -158,16 +145,14 @@ def cmd_capture(args) -> int:
     if args.views:
         cfg.sweep.views = args.views
     cancel = threading.Event()
-    rotator, camera, closers = _capture_io(args, cancel)
-    try:
-        summary = capture(args.session, cfg, rotator, camera, empty_plate=args.empty, overwrite=args.overwrite,
-                          progress=_progress_bar("capture"), cancel=cancel)
-    except KeyboardInterrupt:
-        cancel.set()
-        raise
-    finally:
-        for close in closers:
-            close()
+    with contextlib.ExitStack() as stack:
+        rotator, camera = _capture_io(args, cancel, stack)
+        try:
+            summary = capture(args.session, cfg, rotator, camera, empty_plate=args.empty,
+                              overwrite=args.overwrite, progress=_progress_bar("capture"), cancel=cancel)
+        except KeyboardInterrupt:
+            cancel.set()
+            raise
     if not summary["complete"]:
         print(f"capture: {summary['views']} empty-plate views kept; {summary['message']}")
         return 0

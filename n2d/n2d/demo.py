@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,13 +71,10 @@ def _wait_for_path(path: Path, timeout_s: float, launch) -> None:
 def run_demo(out: Path, cfg: DemoConfig, *, overwrite: bool = False, progress: ProgressFn = no_progress,
              log=print) -> dict:
     """Run the demo into the run directory `out` and return its summary (also written to summary.json)."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
     from n2d.launch_description import load
     from n2d.launcher import Launch
     from n2d_capture.turntable import Turntable, TurntableConfig
-    from n2d_common.ros import ros_environment
+    from n2d_common.ros import background_node, ros_environment
     from n2d_sim.ros_client import SimCameraClient
 
     done = read_manifest(out) if out.is_dir() else None
@@ -100,15 +96,9 @@ def run_demo(out: Path, cfg: DemoConfig, *, overwrite: bool = False, progress: P
         frames_dir.mkdir(exist_ok=True)
         progress(Progress(0.0, "starting", message="simulated world: servo emulator + camera"))
         _wait_for_path(Path(sim_args["port"]), cfg.startup_timeout_s, world)
-        rclpy.init()
-        node = rclpy.create_node("n2d_demo")
-        client = SimCameraClient(node)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        spin = threading.Thread(target=executor.spin, daemon=True)
-        spin.start()
         records, sheet, labels = [], [], []
-        try:
+        with background_node("n2d_demo") as node:
+            client = SimCameraClient(node)
             table = TurntableConfig(port=sim_args["port"], velocity_limit_rad_s=cfg.velocity_rad_s)
             with Turntable(table) as turntable:
                 # The first frame also waits for the renderer to build its scene.
@@ -130,10 +120,6 @@ def run_demo(out: Path, cfg: DemoConfig, *, overwrite: bool = False, progress: P
                     sheet.append(draw_mask_outline(obs.rgb, obs.mask, thickness=2))
                     labels.append(f"{math.degrees(reached):6.1f} deg")
             progress(Progress(1.0, "writing"))
-        finally:
-            executor.shutdown()
-            node.destroy_node()
-            rclpy.shutdown()
         write_png(writer.path / "contact_sheet.png", contact_sheet(sheet, labels))
         errors = [abs(_wrap(r["driver_rad"] - records[0]["driver_rad"] - r["true_delta_rad"])) for r in records]
         summary = {"views": len(records), "seconds": round(time.monotonic() - t_start, 1),

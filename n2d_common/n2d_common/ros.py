@@ -8,6 +8,8 @@ from __future__ import annotations
 import array
 import os
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -17,7 +19,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionClient
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
@@ -205,3 +207,21 @@ class SafeActionClient(ActionClient):
     async def execute(self, taken_data):
         with self._request_lock:
             return await super().execute(taken_data)
+
+
+@contextmanager
+def background_node(name: str, domain_id: int | None = None) -> Iterator[Node]:
+    """For clients outside a node process (CLI, planners, tests): rclpy initialised, one node spinning in
+    a background thread; executor, node and rclpy are shut down on exit."""
+    ros_environment()
+    rclpy.init(domain_id=domain_id)
+    node = rclpy.create_node(name)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    try:
+        yield node
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown()
