@@ -25,6 +25,7 @@ from n2d_common.frames import inv_T
 from n2d_sim import world
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
+from table import print_table
 
 
 def _errors(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -108,10 +109,7 @@ def main(argv: list[str] | None = None) -> None:
         ("detection time, median", f"{1000 * np.median(detect_s):.1f} ms"),
         ("pose time, median", f"{1000 * np.median(pose_s):.1f} ms"),
     ]
-    width = max(len(k) for k, _ in rows)
-    print("ChArUco board benchmark (errors against the simulator's ground truth)")
-    for key, value in rows:
-        print(f"  {key:<{width}}  {value}")
+    print_table("ChArUco board benchmark (errors against the simulator's ground truth)", rows)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ from n2d_sim.camera import SimCamera
 from n2d_sim.frame_source import SimFrameSource
 from n2d_sim.servo import ServoControl
 from n2d_sim.world import SimWorldConfig, T_cam_turntable
+from table import print_table
 
 GOALS = {"rotation_deg": 0.1, "translation_mm": 1.0, "iou": 0.98, "focal_pct": 0.5}
 """Rotation and translation: median error; IoU: mean; focal: absolute error."""
@@ -165,11 +166,8 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="n2d-bench-capture-") as tmp:
         session = args.out.absolute() if args.out else Path(tmp) / "session"
         rows = run(session, world, cfg, args.overwrite)
-    header = ("metric", "value", "goal", "met")
-    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(4)]
-    print("Capture benchmark (simulator; errors against its ground truth)")
-    for row in [header, *rows]:
-        print("  " + "  ".join(f"{c:<{w}}" for c, w in zip(row, widths)).rstrip())
+    print_table("Capture benchmark (simulator; errors against its ground truth)", rows,
+                ("metric", "value", "goal", "met"))
     if args.out:
         print(f"session: {session} (contact sheet: {session / 'contact_sheet.png'})")
 

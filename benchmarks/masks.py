@@ -27,6 +27,7 @@ from n2d_common.images import contact_sheet, draw_mask_outline, write_png
 from n2d_sim.camera import SimCamera
 from n2d_sim.objects import SAMPLE_OBJECTS
 from n2d_sim.world import SimWorldConfig
+from table import print_table
 
 VARIANTS = {"reference": (0, 255, 0), "no reference": (255, 0, 0)}
 """Variant name: outline colour on the sheet."""
@@ -90,10 +91,9 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((name, variant, statistics.mean(scores[variant]), min(scores[variant]),
                          1000 * statistics.mean(times[variant])))
 
-    print(f"foreground masks, {width}x{height}, {args.angles} angles per object, noise on view and reference")
-    print(f"  {'object':<8} {'variant':<13} {'mean IoU':>9} {'min IoU':>8} {'ms/frame':>9}")
-    for name, variant, mean, low, ms in rows:
-        print(f"  {name:<8} {variant:<13} {mean:9.4f} {low:8.4f} {ms:9.0f}")
+    print_table(f"foreground masks, {width}x{height}, {args.angles} angles per object, noise on view and reference",
+                [(name, variant, f"{mean:.4f}", f"{low:.4f}", f"{ms:.0f}") for name, variant, mean, low, ms in rows],
+                ("object", "variant", "mean IoU", "min IoU", "ms/frame"))
     write_png(args.sheet, contact_sheet(tiles, labels, cols=4, thumb_width=tiles[0].shape[1]))
     print(f"  contact sheet: {args.sheet}")
 

@@ -21,6 +21,7 @@ from n2d_common.config import apply_overrides, from_dict, to_dict
 from n2d_common.images import contact_sheet, draw_mask_outline, write_png
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
+from table import print_table
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -63,10 +64,7 @@ def main(argv: list[str] | None = None) -> None:
         ("new-angle rate", f"{1 / mean:.2f} frames/s"),
         ("republish with noise", f"{noise_s * 1000:.1f} ms -> {1 / noise_s:.0f} frames/s"),
     ]
-    width = max(len(k) for k, _ in rows)
-    print("simulated camera benchmark")
-    for key, value in rows:
-        print(f"  {key:<{width}}  {value}")
+    print_table("simulated camera benchmark", rows)
 
     if args.sheet:
         images = [draw_mask_outline(f.rgb, f.mask, (0, 255, 0)) for f in frames]
