@@ -21,6 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
+            "reconstruct_node = n2d_reconstruct.nodes.reconstruct_node:main",
         ],
     },
 )

@@ -1,11 +1,11 @@
 """The Capture action across processes, as a task planner calls it: `n2d launch capture` (simulated servo and
 camera, turntable_node, capture_node), an rclpy client here: empty-plate sweep, object sweep, complete session."""
 
-import time
 
 import numpy as np
 import pytest
 from action_msgs.msg import GoalStatus
+from helpers import wait_future
 from std_srvs.srv import SetBool
 
 from n2d.launch_description import load
@@ -16,13 +16,6 @@ from n2d_interfaces.action import Capture
 
 VIEWS = 36
 
-
-def _wait(future, timeout_s):
-    deadline = time.monotonic() + timeout_s
-    while not future.done():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.05)
-    return future.result()
 
 
 @pytest.mark.timeout(900)
@@ -37,13 +30,13 @@ def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
             session = str(tmp_path / "session")
             results = []
             for empty in (True, False):
-                assert _wait(lift.call_async(SetBool.Request(data=not empty)), 30).success
+                assert wait_future(lift.call_async(SetBool.Request(data=not empty)), 30).success
                 feedback = []
-                goal = _wait(client.send_goal_async(Capture.Goal(session_dir=session, views=VIEWS, empty_plate=empty,
-                                                                 config_yaml="sweep: {frame_timeout_s: 60}"),
-                                                    feedback_callback=feedback.append), 30)
+                request = Capture.Goal(session_dir=session, views=VIEWS, empty_plate=empty,
+                                       config_yaml="sweep: {frame_timeout_s: 60}")
+                goal = wait_future(client.send_goal_async(request, feedback_callback=feedback.append), 30)
                 assert goal.accepted
-                result = _wait(goal.get_result_async(), 800)
+                result = wait_future(goal.get_result_async(), 800)
                 assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, "\n".join(logs[-40:]))
                 assert result.result.views_captured == VIEWS
                 assert any(f.feedback.last_image.width for f in feedback)

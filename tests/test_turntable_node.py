@@ -6,6 +6,7 @@ import time
 
 import pytest
 from action_msgs.msg import GoalStatus
+from helpers import wait_future
 from sensor_msgs.msg import JointState
 
 from n2d.launch_description import LaunchSpec, NodeSpec
@@ -27,13 +28,6 @@ def client_node(ros_domain):
         yield node
 
 
-def _wait(future, timeout_s=30):
-    deadline = time.monotonic() + timeout_s
-    while not future.done():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
-    return future.result()
-
 
 @pytest.mark.timeout(120)
 def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
@@ -45,9 +39,10 @@ def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
         assert client.wait_for_server(timeout_sec=30), logs
 
         feedback = []
-        goal = _wait(client.send_goal_async(Rotate.Goal(angle_rad=math.pi / 2), feedback_callback=feedback.append))
+        goal = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=math.pi / 2),
+                                                  feedback_callback=feedback.append))
         assert goal.accepted
-        result = _wait(goal.get_result_async())
+        result = wait_future(goal.get_result_async())
         assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.success
         assert abs(result.result.angle_rad - math.pi / 2) < 0.005
         assert abs(sim.control.state()["plate_rad"] - math.pi / 2) < 0.005
@@ -55,12 +50,12 @@ def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
         assert {f.feedback.stage for f in feedback} <= {"moving", "settling"}
 
         # a long move, cancelled half way: the plate stops short of the goal
-        goal = _wait(client.send_goal_async(Rotate.Goal(angle_rad=4 * math.pi)))
+        goal = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=4 * math.pi)))
         time.sleep(0.8)
-        busy = _wait(client.send_goal_async(Rotate.Goal(angle_rad=0.0)))
+        busy = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=0.0)))
         assert not busy.accepted  # one rotation at a time
-        _wait(goal.cancel_goal_async())
-        result = _wait(goal.get_result_async())
+        wait_future(goal.cancel_goal_async())
+        result = wait_future(goal.get_result_async())
         assert result.status == GoalStatus.STATUS_CANCELED
         deadline = time.monotonic() + 10
         while sim.control.state()["moving"]:  # braking with the profile deceleration

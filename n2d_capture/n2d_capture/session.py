@@ -58,8 +58,8 @@ class SessionView:
 
     image: Path
     mask: Path | None
-    T_turntable_cam: np.ndarray
-    """4x4 camera pose (OpenCV camera axes) in the turntable frame, metres."""
+    T_turntable_cam: np.ndarray | None
+    """4x4 camera pose (OpenCV camera axes) in the turntable frame, metres; None where the file has none."""
 
 
 @dataclass
@@ -83,5 +83,6 @@ def read_session(directory: str | Path) -> Session:
     K = np.array([[t["fl_x"], 0.0, t["cx"] - PIXEL_EDGE], [0.0, t["fl_y"], t["cy"] - PIXEL_EDGE], [0.0, 0.0, 1.0]])
     dist = np.array([t.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
     views = [SessionView(directory / f["file_path"], directory / f["mask_path"] if "mask_path" in f else None,
-                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV) for f in t["frames"]]
+                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV if "transform_matrix" in f else None)
+             for f in t["frames"]]
     return Session(directory, K, dist, int(t["w"]), int(t["h"]), views, manifest)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import array
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
@@ -25,7 +25,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import CameraInfo, Image
 
 from n2d_common.config import flat_fields, from_dict
-from n2d_common.errors import ConfigError, N2DError
+from n2d_common.errors import Cancelled, ConfigError, N2DError
 from n2d_common.frames import quat_from_R
 
 C = TypeVar("C")
@@ -79,6 +79,24 @@ def declare_config(node: Node, cls: type[C]) -> C:
         return from_dict(cls, data)
     except ConfigError as exc:
         raise ConfigError(f"parameter {exc.message}", exc.hint) from None
+
+
+def run_goal(goal_handle, result, job: Callable[[], None], logger) -> Any:
+    """Run `job()` for an action goal and end the goal: succeeded when it returns (with result.success set),
+    canceled on Cancelled, aborted on N2DError or ValueError (logged); result.message holds the reason.
+    `job` fills in the other result fields."""
+    try:
+        job()
+        result.success = True
+        goal_handle.succeed()
+    except Cancelled as exc:
+        result.message = str(exc)
+        goal_handle.canceled()
+    except (N2DError, ValueError) as exc:
+        result.message = str(exc)
+        logger.error(result.message)
+        goal_handle.abort()
+    return result
 
 
 def stamp_msg(t_s: float) -> Time:

@@ -21,9 +21,8 @@ from rclpy.node import Node
 from n2d_capture.capture import CaptureConfig, capture
 from n2d_capture.nodes.ros_io import RosFrameSource, RosRotator
 from n2d_common.config import from_dict, merge, parse_mapping, to_dict
-from n2d_common.errors import Cancelled, N2DError
 from n2d_common.progress import Progress
-from n2d_common.ros import declare_config, image_msg, run_node, stamp_msg
+from n2d_common.ros import declare_config, image_msg, run_goal, run_node, stamp_msg
 from n2d_interfaces.action import Capture
 
 
@@ -90,22 +89,14 @@ class CaptureNode(Node):
                     fb.last_image = image_msg(small, "rgb8", stamp_msg(0.0), "")
                 goal_handle.publish_feedback(fb)
 
-            try:
+            def job() -> None:
                 summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
                                   empty_plate=goal.empty_plate, overwrite=goal.overwrite, progress=feedback,
                                   cancel=self._cancel)
-                result.success = True
                 result.views_captured = summary["views"]
                 result.message = summary.get("message", "")
-                goal_handle.succeed()
-            except Cancelled as exc:
-                result.message = str(exc)
-                goal_handle.canceled()
-            except N2DError as exc:
-                result.message = str(exc)
-                self.get_logger().error(result.message)
-                goal_handle.abort()
-        return result
+
+            return run_goal(goal_handle, result, job, self.get_logger())
 
     def destroy_node(self) -> None:
         self._cancel.set()

@@ -1,0 +1,93 @@
+"""The fast CPU path's geometry: the visual hull of the masks as a signed distance field.
+
+Each view contributes the signed distance of a point's projection to that view's silhouette
+boundary (pixels, positive inside the mask), scaled by depth / focal length to metres: the distance
+to the view's silhouette cone, to first order. The hull is the intersection of all cones, so its
+field is the smallest of these, or the (k+1)-th smallest to forgive k views whose mask missed a
+part of the object. Points below the plate surface are outside (the object stands on it). The field
+is continuous, so marching cubes places the surface to a fraction of a voxel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from n2d_reconstruct.data import Views
+
+OUTSIDE_IMAGE_PX = -1e4
+"""Signed distance given to points that project outside a view: carved away, as every view is expected to
+see the whole object (a part outside one view's frame is lost)."""
+
+
+@dataclass
+class HullConfig:
+    """The visual hull (fast path)."""
+
+    forgive_views: int = 0
+    """A point outside the masks of this many views is still kept (robustness to a few bad masks)."""
+    plate_clearance_m: float = 0.0
+    """Height above the plate surface where the object starts; everything below is cut away, metres."""
+    search_height_m: float = 0.5
+    """Height above the plate searched for the object, metres."""
+
+    def __post_init__(self):
+        if self.forgive_views < 0:
+            raise ValueError("forgive_views must be >= 0")
+        if self.search_height_m <= 0:
+            raise ValueError("search_height_m must be > 0")
+
+
+class VisualHull:
+    """Signed distance (metres, negative inside) to the visual hull of `views` above the plate."""
+
+    def __init__(self, views: Views, cfg: HullConfig):
+        if cfg.forgive_views >= len(views):
+            raise ValueError(f"forgive_views ({cfg.forgive_views}) must be smaller than the number of views")
+        self.cfg = cfg
+        self.K = torch.as_tensor(views.K, dtype=torch.float64)
+        T_cam_turntable = np.linalg.inv(views.T_turntable_cam)
+        self.R = torch.as_tensor(T_cam_turntable[:, :3, :3], dtype=torch.float64)
+        self.t = torch.as_tensor(T_cam_turntable[:, :3, 3], dtype=torch.float64)
+        self.size = torch.tensor([views.width, views.height], dtype=torch.float64)
+        self.dist = torch.as_tensor(np.stack([signed_distance_px(m) for m in views.masks]))[:, None]
+
+    def __call__(self, points: np.ndarray, chunk: int = 1 << 17) -> np.ndarray:
+        """N x 3 turntable-frame points -> N signed distances, metres (negative inside)."""
+        out = np.empty(len(points))
+        for s in range(0, len(points), chunk):
+            out[s:s + chunk] = self._chunk(torch.as_tensor(points[s:s + chunk], dtype=torch.float64)).numpy()
+        return out
+
+    def _chunk(self, p: torch.Tensor) -> torch.Tensor:
+        cam = torch.einsum("vij,nj->vni", self.R, p) + self.t[:, None]          # V x N x 3
+        z = cam[..., 2].clamp_min(1e-6)
+        uv = torch.stack([self.K[0, 0] * cam[..., 0] / z + self.K[0, 2],
+                          self.K[1, 1] * cam[..., 1] / z + self.K[1, 2]], dim=-1)
+        # grid_sample's align_corners=True maps -1 and 1 to the centres of the first and last pixel.
+        grid = (2 * uv / (self.size - 1) - 1).float()[:, :, None]                 # V x N x 1 x 2
+        d = torch.nn.functional.grid_sample(self.dist, grid, align_corners=True, padding_mode="border")[:, 0, :, 0]
+        outside = (uv < -0.5).any(-1) | (uv > self.size - 0.5).any(-1) | (cam[..., 2] <= 0)
+        d = torch.where(outside, torch.full_like(d, OUTSIDE_IMAGE_PX), d.double())
+        metric = d * z / self.K[0, 0]
+        k = self.cfg.forgive_views
+        inside = metric.kthvalue(k + 1, dim=0).values if k else metric.min(dim=0).values
+        above = p[:, 2] - self.cfg.plate_clearance_m
+        return -torch.minimum(inside, above)
+
+
+def signed_distance_px(mask: np.ndarray) -> np.ndarray:
+    """H x W float32 signed distance of each pixel centre to the mask's boundary (pixel edges), positive
+    inside the mask, in pixels."""
+    m = mask.astype(np.uint8)
+    inside = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    outside = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(m > 0, inside - 0.5, 0.5 - outside).astype(np.float32)
+
+
+def search_box(radius_m: float, cfg: HullConfig) -> np.ndarray:
+    """2 x 3 [min, max] turntable-frame box the object is searched in: over the plate, up to search_height_m."""
+    return np.array([[-radius_m, -radius_m, cfg.plate_clearance_m], [radius_m, radius_m, cfg.search_height_m]])

@@ -1,0 +1,160 @@
+"""The reconstruction stage: capture session -> model directory (textured metric mesh + report).
+
+Phases: load (checks) -> geometry (the visual hull field, `fast`; or NeuS trained from it, `neus`)
+-> mesh (narrow-band marching cubes, clean-up) -> texture (xatlas, bake) -> export (object frame,
+OBJ/GLB, models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
+The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
+keeps its checkpoint there and the next run with the same config resumes from it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from n2d_common.config import to_dict
+from n2d_common.contracts import atomic_write_json, stage_output
+from n2d_common.errors import Cancelled
+from n2d_common.frames import inv_T
+from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_reconstruct.data import load_session
+from n2d_reconstruct.export import object_frame, write_model
+from n2d_reconstruct.hull import HullConfig, VisualHull, search_box
+from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh
+from n2d_reconstruct.refine import RefineConfig, refine_surface
+from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
+from n2d_reconstruct.texture import TextureConfig, bake_from_views, unwrap
+
+PHASES = {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.4, "texture": 0.25, "export": 0.05,
+          "report": 0.15}
+"""Share of the progress bar of each phase of the fast path."""
+
+
+@dataclass
+class ReconstructConfig:
+    """Capture session to model."""
+
+    method: Literal["fast"] = "fast"
+    """fast: visual hull from the masks refined by photo-consistency, textured from the photos (CPU, minutes)."""
+    object_name: str = "object"
+    """Name of the object (written into the model files and the manifest)."""
+    holdout_every: int = 8
+    """Every n-th view is held out of reconstruction and used to measure it (0: none)."""
+    min_views: int = 8
+    """Sessions with fewer views are refused."""
+    fscore_threshold_m: float = 0.001
+    """Distance under which a point counts as correct in the F-score against a ground truth, metres."""
+    hull: HullConfig = field(default_factory=HullConfig)
+    """Visual hull."""
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    """Marching cubes and clean-up."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Photo-consistency refinement of the hull."""
+    texture: TextureConfig = field(default_factory=TextureConfig)
+    """UV atlas and albedo."""
+
+    def __post_init__(self):
+        if self.holdout_every < 0 or self.holdout_every == 1:
+            raise ValueError("holdout_every must be 0 (none) or >= 2")
+        if self.min_views < 3:
+            raise ValueError("min_views must be >= 3")
+
+
+class _Phases:
+    """Progress across the phases, and their wall times."""
+
+    def __init__(self, progress: ProgressFn, cancel: threading.Event | None):
+        self.progress, self.cancel = progress, cancel
+        self.done, self.times, self.eta = 0.0, {}, Eta()
+
+    def run(self, name: str, fn, *args, **kwargs):
+        if self.cancel is not None and self.cancel.is_set():
+            raise Cancelled(f"reconstruction cancelled before the {name} phase", "re-run the same command to resume")
+        share, start = PHASES[name], time.monotonic()
+
+        def sub(p: Progress) -> None:
+            fraction = self.done + share * p.fraction
+            eta = p.eta_s if p.eta_s >= 0 else self.eta(fraction)
+            self.progress(Progress(fraction, name, eta, p.message, p.info))
+
+        self.progress(Progress(self.done, name))
+        result = fn(*args, progress=sub, **kwargs)
+        self.times[name] = round(time.monotonic() - start, 2)
+        self.done += share
+        return result
+
+
+def _load(session_dir, cfg: ReconstructConfig, progress: ProgressFn):
+    return load_session(session_dir, holdout_every=cfg.holdout_every, min_views=cfg.min_views)
+
+
+def _hull(data, cfg: ReconstructConfig, progress: ProgressFn):
+    return VisualHull(data.train, cfg.hull)
+
+
+def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
+    if not cfg.refine.enabled:
+        return mesh, None
+    mesh, stats = refine_surface(mesh, views, cfg.refine, progress)
+    return clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations)), stats
+
+
+def _texture(mesh, views, cfg: TextureConfig, progress: ProgressFn):
+    progress(Progress(0.0, "texture", message="unwrapping (xatlas)"))
+    tm = unwrap(mesh, cfg)
+    tm.albedo = bake_from_views(tm, views, cfg, progress=lambda p: progress(Progress(0.5 + 0.5 * p.fraction, "texture",
+                                                                                     message=p.message)))
+    return tm
+
+
+def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig, *,
+                ground_truth: str | Path | None = None, overwrite: bool = False,
+                progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
+    """Reconstruct the capture session `session_dir` into the model directory `out`; returns the report.
+
+    `ground_truth`: a model directory of the true object (the simulator's), placed as the simulator
+    places it, to measure the geometry. Raises ContractError for bad input, Cancelled on `cancel`.
+    """
+    phases = _Phases(progress, cancel)
+    session_dir = Path(session_dir)
+    data = phases.run("load", _load, session_dir, cfg)  # bad input fails before anything is written
+    with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
+        hull = phases.run("geometry", _hull, data, cfg)
+        mesh = phases.run("mesh", extract_mesh, hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh)
+        mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
+        tm = phases.run("texture", _texture, mesh, data.train, cfg.texture)
+        T_turntable_obj = object_frame(tm.vertices)
+        info = phases.run("export", lambda progress: write_model(writer.path, tm.transformed(inv_T(T_turntable_obj)),
+                                                                 cfg.object_name))
+        report = phases.run("report", _report, writer.path, data, tm, mesh, ground_truth, cfg)
+        report["refine"] = refined
+        report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
+        report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,
+                           "diameter_mm": info["diameter"],
+                           "size_mm": [info["size_x"], info["size_y"], info["size_z"]]}
+        atomic_write_json(writer.path / "report.json", report)
+        writer.finish(config=to_dict(cfg), inputs={"session": str(session_dir.absolute())},
+                      extra={"object": cfg.object_name, "method": cfg.method,
+                             "T_turntable_obj": np.round(T_turntable_obj, 9).tolist(),
+                             "frame": "object frame at the bounding-box centre, axes of the session's turntable "
+                                      "frame (Z up); T_turntable_obj maps it into the turntable frame, metres"})
+        progress(Progress(1.0, "done"))
+        return report
+
+
+def _report(directory: Path, data, tm, mesh, ground_truth, cfg: ReconstructConfig, progress: ProgressFn) -> dict:
+    report: dict = {"method": cfg.method, "views": {"train": len(data.train), "heldout": len(data.heldout)}}
+    # Without held-out views the preview shows training views, and no image metrics are reported.
+    shown = data.heldout if len(data.heldout) else data.train.subset(list(range(min(3, len(data.train)))))
+    metrics, rows = image_metrics(shown, tm)
+    report["heldout"] = metrics if len(data.heldout) else None
+    label = "photo (held out)" if len(data.heldout) else "photo (training)"
+    write_preview(directory / "preview.png", rows, [label, "textured mesh", "geometry"])
+    if ground_truth is not None:
+        report["geometry"] = geometry_metrics(mesh, ground_truth_mesh(Path(ground_truth)), cfg.fscore_threshold_m)
+    return report

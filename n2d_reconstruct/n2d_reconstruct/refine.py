@@ -1,0 +1,178 @@
+"""Photo-consistency refinement of the visual hull: move each vertex inward to where the photos agree.
+
+A visual hull is the largest shape consistent with the silhouettes; from one ring of views it keeps
+a "roof" over the top of an object and slabs over faces seen only obliquely. The true surface lies
+inside it. For every vertex, a small patch tangent to the surface is swept inward along the normal;
+at each depth the patch is projected into the views that see the vertex most frontally, and the
+normalised cross-correlation (NCC) of its grey values with the reference (most frontal) view is
+averaged. The depth with the best score wins where the score is high and the patch textured; the
+depths are then median-filtered over the mesh so single bad matches do not make spikes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
+
+from n2d_common.frames import inv_T, transform_points
+from n2d_common.progress import Progress, ProgressFn, no_progress
+from n2d_reconstruct.data import Views
+from n2d_reconstruct.raster import render_depth
+
+
+@dataclass
+class RefineConfig:
+    """Photo-consistency refinement of the hull (fast path)."""
+
+    enabled: bool = True
+    """Refine the hull (false: the plain visual hull)."""
+    max_depth_m: float = 0.03
+    """How far inside the hull the surface is searched, metres."""
+    outward_m: float = 0.002
+    """How far outside the hull it is searched (mask boundaries are not exact), metres."""
+    step_px: float = 0.6
+    """Depth step of the search, in pixels on the object (the size of a pixel at the object's distance)."""
+    patch_size: int = 7
+    """Patch samples per side, one pixel on the object apart."""
+    views_per_vertex: int = 7
+    """Most frontal views compared per vertex (the first is the reference)."""
+    min_cos: float = 0.4
+    """Views that see the surface more obliquely than this cosine are not used."""
+    min_ncc: float = 0.5
+    """A vertex moves only where the best mean NCC reaches this."""
+    min_contrast: float = 3.0
+    """A vertex moves only where its reference patch has this much grey-level standard deviation (0..255)."""
+    agree_steps: int = 2
+    """A view agrees with the chosen depth when its own best depth is within this many steps."""
+    min_agreeing_views: int = 4
+    """A vertex moves only where this many of the compared views (besides the reference) agree."""
+    smoothness: float = 4.0
+    """Weight of the membrane term that spreads found depths to their neighbours and smooths them."""
+    robust_m: float = 0.0015
+    """Found depths further than this from the smoothed surface are down-weighted (Huber), metres."""
+    smooth_iterations: int = 5
+    """Taubin smoothing iterations after the vertices moved."""
+
+    def __post_init__(self):
+        if self.step_px <= 0 or self.max_depth_m <= 0:
+            raise ValueError("step_px and max_depth_m must be > 0")
+        if self.views_per_vertex < 2 or self.patch_size < 3:
+            raise ValueError("views_per_vertex must be >= 2 and patch_size >= 3")
+
+
+def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig,
+                   progress: ProgressFn = no_progress) -> tuple[trimesh.Trimesh, dict]:
+    """The hull `mesh` (turntable frame) with its vertices moved to the photo-consistent depth, and stats."""
+    v = mesh.vertices
+    n = mesh.vertex_normals
+    grey = torch.as_tensor(views.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[:, None]
+    pixel_m = float(np.median(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1))) / views.K[0, 0]
+    step = cfg.step_px * pixel_m
+    cos, visible = _visibility(mesh, views, cfg, step)
+    order = np.argsort(-np.where(visible, cos, -1.0), axis=1)[:, :cfg.views_per_vertex]
+    usable = np.take_along_axis(visible, order, axis=1).all(1)
+    depths = np.arange(-cfg.outward_m, cfg.max_depth_m + 1e-12, step)
+    found = np.full(len(v), np.nan)
+    idx = np.flatnonzero(usable)
+    chunk = 512
+    for s in range(0, len(idx), chunk):
+        part = idx[s:s + chunk]
+        found[part] = _search(v[part], n[part], order[part], depths, pixel_m, views, grey, cfg)
+        progress(Progress(min(1.0, (s + chunk) / max(len(idx), 1)), "refining",
+                          message=f"{min(s + chunk, len(idx))}/{len(idx)} vertices"))
+    d = smooth_depths(mesh, found, cfg)
+    out = trimesh.Trimesh(v - d[:, None] * n, mesh.faces, process=False)
+    stats = {"vertices": len(v), "searched": int(usable.sum()), "moved": int(np.isfinite(found).sum()),
+             "median_depth_mm": round(1000 * float(np.median(d[np.isfinite(found)])) if np.isfinite(found).any()
+                                      else 0.0, 3),
+             "max_depth_mm": round(1000 * float(d.max()), 3)}
+    return out, stats
+
+
+def smooth_depths(mesh: trimesh.Trimesh, found: np.ndarray, cfg: RefineConfig, rounds: int = 3) -> np.ndarray:
+    """Per-vertex depths minimising sum_found w (d - found)^2 + smoothness * sum_edges (d_i - d_j)^2, with
+    Huber weights w re-estimated over `rounds` (a robust membrane fit: unfound vertices are interpolated)."""
+    n = len(mesh.vertices)
+    edges = mesh.edges_unique
+    adjacency = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    adjacency = (adjacency + adjacency.T).tocsr()
+    laplacian = sparse.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
+    has = np.isfinite(found)
+    target = np.where(has, found, 0.0)
+    weight = has.astype(float)
+    d = target
+    for _ in range(rounds):
+        A = sparse.diags(weight + 1e-6) + cfg.smoothness * laplacian
+        d = spsolve(A.tocsc(), weight * target)
+        residual = np.abs(d - target)
+        weight = np.where(has, np.minimum(1.0, cfg.robust_m / np.maximum(residual, 1e-12)), 0.0)
+    return d
+
+
+def _visibility(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """V x N cosine between each vertex normal and the direction to each camera, and whether it is seen."""
+    v, n = mesh.vertices, mesh.vertex_normals
+    cos = np.zeros((len(v), len(views)))
+    visible = np.zeros((len(v), len(views)), dtype=bool)
+    tolerance = 2 * step + 0.001
+    for i in range(len(views)):
+        T_cam = inv_T(views.T_turntable_cam[i])
+        depth = render_depth(v, mesh.faces, views.K, T_cam, views.width, views.height)
+        cam = transform_points(T_cam, v)
+        px = np.rint(cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]).astype(int)
+        inside = (px >= 0).all(1) & (px[:, 0] < views.width) & (px[:, 1] < views.height)
+        seen = np.zeros(len(v), dtype=bool)
+        seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - cam[inside, 2]) < tolerance
+        to_cam = views.T_turntable_cam[i][:3, 3] - v
+        cos[:, i] = np.einsum("nc,nc->n", n, to_cam) / np.linalg.norm(to_cam, axis=1)
+        visible[:, i] = seen & (cos[:, i] > cfg.min_cos)
+    return cos, visible
+
+
+def _tangents(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors spanning the plane perpendicular to each unit normal."""
+    helper = np.where(np.abs(n[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(n, t1)
+
+
+def _search(v, n, order, depths, spacing: float, views: Views, grey: torch.Tensor, cfg: RefineConfig) -> np.ndarray:
+    """Best inward depth of each vertex (NaN where no depth is trustworthy); patch samples `spacing` apart."""
+    c = (np.arange(cfg.patch_size) - (cfg.patch_size - 1) / 2) * spacing
+    a, b = np.meshgrid(c, c, indexing="ij")
+    t1, t2 = _tangents(n)
+    patch = a.reshape(1, -1, 1) * t1[:, None] + b.reshape(1, -1, 1) * t2[:, None]            # V x P x 3
+    points = v[:, None, None] - depths[None, :, None, None] * n[:, None, None] + patch[:, None]  # V x D x P x 3
+    samples = np.zeros((len(v), order.shape[1]) + points.shape[1:3], np.float32)              # V x M x D x P
+    h, w = views.height, views.width
+    for j in np.unique(order):
+        rows, slots = np.nonzero(order == j)
+        T_cam = inv_T(views.T_turntable_cam[j])
+        cam = transform_points(T_cam, points[rows].reshape(-1, 3))
+        uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
+        grid = torch.as_tensor(2 * uv / [w - 1, h - 1] - 1, dtype=torch.float32).view(1, -1, 1, 2)
+        values = torch.nn.functional.grid_sample(grey[j:j + 1], grid, align_corners=True, padding_mode="border")
+        samples[rows, slots] = values.view(len(rows), *points.shape[1:3]).numpy()
+    centred = samples - samples.mean(-1, keepdims=True)
+    std = np.sqrt((centred ** 2).mean(-1))                                                   # V x M x D
+    unit = centred / np.maximum(std, 1e-3)[..., None]
+    pair = (unit[:, :1] * unit[:, 1:]).mean(-1)                                               # V x M-1 x D
+    ncc = pair.mean(1)                                                                        # V x D
+    best = ncc.argmax(1)
+    # agreement: most views must peak near the same depth on their own (repetitive texture fools one view)
+    agree = (np.abs(pair.argmax(-1) - best[:, None]) <= cfg.agree_steps).sum(1) >= cfg.min_agreeing_views
+    score = ncc[np.arange(len(v)), best]
+    # sub-step position of the peak from a parabola through it and its neighbours
+    lo, hi = np.clip(best - 1, 0, len(depths) - 1), np.clip(best + 1, 0, len(depths) - 1)
+    y0, y1, y2 = ncc[np.arange(len(v)), lo], score, ncc[np.arange(len(v)), hi]
+    curvature = y0 - 2 * y1 + y2
+    shift = np.where((curvature < 0) & (lo < best) & (hi > best), 0.5 * (y0 - y2) / np.minimum(curvature, -1e-9), 0.0)
+    depth = depths[best] + np.clip(shift, -0.5, 0.5) * (depths[1] - depths[0])
+    ok = agree & (score >= cfg.min_ncc) & (std[np.arange(len(v)), 0, best] >= cfg.min_contrast)
+    return np.where(ok, depth, np.nan)

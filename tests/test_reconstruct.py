@@ -1,0 +1,143 @@
+"""The reconstruction stage's fast path on a small simulated session (real Blender renders, exact poses and
+masks): metric geometry against the ground truth, the model files, bad input, cancel and resume, the CLI."""
+
+import json
+import shutil
+import threading
+
+import numpy as np
+import pytest
+import trimesh
+
+from n2d.cli import main as cli
+from n2d_common.contracts import read_manifest
+from n2d_common.errors import Cancelled, ContractError
+from n2d_common.images import read_png, write_png
+from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
+from n2d_sim.session import render_session, small_world
+
+VIEWS = 36
+SIZE = (320, 240)
+BOX_MM = np.array([90.0, 60.0, 140.0])
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    out = tmp_path_factory.mktemp("recon") / "session"
+    gt = render_session(out, small_world("box", *SIZE), VIEWS)
+    return out, gt
+
+
+def _config(**kw) -> ReconstructConfig:
+    cfg = ReconstructConfig(object_name="box", holdout_every=8, **kw)
+    cfg.mesh.voxel_m = 0.002
+    cfg.mesh.target_faces = 5000
+    cfg.texture.size_px = 256
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def model(session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("recon") / "model"
+    report = reconstruct(session[0], out, _config(), ground_truth=session[1].model_dir)
+    return out, report
+
+
+def test_fast_path_is_metric_and_close_to_the_ground_truth(model):
+    out, report = model
+    g = report["geometry"]
+    # 36 views of 320x240, a pixel is ~1.6 mm on the object (measured: Chamfer 1.4 mm, 0.8 % of the diameter)
+    assert g["chamfer_pct_diameter"] < 1.2, g
+    assert g["fscore"] > 0.35, g
+    size = np.array(report["model"]["size_mm"])
+    assert np.all(np.abs(size - BOX_MM) < [5, 5, 15]), size  # what is left of the hull's roof over the top
+    assert report["refine"]["moved"] > report["refine"]["vertices"] / 3, report["refine"]
+    assert report["model"]["watertight"]
+    assert report["heldout"]["heldout_views"] == 4 and report["heldout"]["mesh_psnr_db"] > 12  # measured 14.0 dB
+    assert set(report["timings_s"]) >= {"load", "geometry", "mesh", "texture", "export", "report", "total"}
+    assert json.loads((out / "report.json").read_text()) == report
+
+
+def test_model_files_follow_the_contract(model):
+    out, report = model
+    manifest = read_manifest(out)
+    assert manifest["complete"] and manifest["kind"] == "model" and manifest["extra"]["object"] == "box"
+    T = np.array(manifest["extra"]["T_turntable_obj"])
+    assert abs(T[2, 3] - report["model"]["size_mm"][2] / 2000) < 0.003  # object frame at the bbox centre
+    mesh = trimesh.load(out / "mesh.obj", force="mesh")
+    centre = (mesh.vertices.min(0) + mesh.vertices.max(0)) / 2
+    assert np.abs(centre).max() < 1e-6
+    assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+    glb = trimesh.load(out / "mesh.glb", force="mesh")
+    # glTF is Y up: the object's height (Z in the OBJ) is Y in the GLB
+    assert np.allclose(np.ptp(glb.vertices, axis=0), np.ptp(mesh.vertices, axis=0)[[0, 2, 1]], atol=1e-6)
+    info = json.loads((out / "models_info.json").read_text())["1"]
+    assert info["size_z"] == pytest.approx(1000 * np.ptp(mesh.vertices[:, 2]), abs=1e-3)
+    diagonal = np.linalg.norm([info["size_x"], info["size_y"], info["size_z"]])
+    assert 0.85 * diagonal < info["diameter"] <= diagonal + 1e-6  # the corners of a reconstruction are rounded
+    albedo = read_png(out / "albedo.png")
+    assert albedo.shape == (256, 256, 3) and albedo.std() > 10
+    preview = read_png(out / "preview.png")
+    assert preview.shape[0] > 100 and preview.std() > 10
+
+
+def _copy(session, tmp_path):
+    copy = tmp_path / "session"
+    shutil.copytree(session, copy)
+    return copy
+
+
+def test_bad_sessions_are_refused_and_nothing_is_written(session, tmp_path):
+    out = tmp_path / "model"
+    with pytest.raises(ContractError, match="needs at least 40"):
+        reconstruct(session[0], out, _config(min_views=40))
+    copy = _copy(session[0], tmp_path)
+    mask = copy / "masks/0003.png"
+    write_png(mask, np.zeros_like(read_png(mask)))
+    with pytest.raises(ContractError, match="0003.png is empty"):
+        reconstruct(copy, out, _config())
+    write_png(mask, np.full_like(read_png(mask), 255))
+    with pytest.raises(ContractError, match="0003.png is full"):
+        reconstruct(copy, out, _config())
+    shutil.copy(session[0] / "masks/0003.png", mask)
+    t = json.loads((copy / "transforms.json").read_text())
+    del t["frames"][5]["transform_matrix"]
+    (copy / "transforms.json").write_text(json.dumps(t))
+    with pytest.raises(ContractError, match="0005.png has no valid camera pose"):
+        reconstruct(copy, out, _config())
+    (copy / "n2d.json").unlink()
+    with pytest.raises(ContractError):
+        reconstruct(copy, out, _config())
+    assert not out.exists() and not out.with_name("model.partial").exists()
+
+
+def test_cancel_keeps_the_partial_and_a_rerun_finishes(session, tmp_path):
+    out = tmp_path / "model"
+    cancel = threading.Event()
+    stages = []
+
+    def progress(p):
+        stages.append(p.stage)
+        if p.stage == "texture":
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        reconstruct(session[0], out, _config(), progress=progress, cancel=cancel)
+    assert not out.exists() and read_manifest(out.with_name("model.partial"))["complete"] is False
+    report = reconstruct(session[0], out, _config())
+    assert read_manifest(out)["complete"] and report["model"]["watertight"]
+    assert not out.with_name("model.partial").exists()
+
+
+def test_cli_reconstruct(session, tmp_path, capsys):
+    out = tmp_path / "model"
+    args = ["reconstruct", str(session[0]), str(out), "--name", "box", "--ground-truth", str(session[1].model_dir),
+            "--set", "mesh.voxel_m=0.003", "--set", "texture.size_px=128", "--set", "mesh.target_faces=2000"]
+    assert cli(args) == 0
+    printed = capsys.readouterr().out
+    assert "Chamfer" in printed and "held-out textured mesh PSNR" in printed
+    assert read_manifest(out)["extra"]["object"] == "box"
+    assert cli(args) == 2  # exists
+    assert "already exists" in capsys.readouterr().err
+    assert cli(["reconstruct", str(tmp_path / "nowhere"), str(tmp_path / "m2")]) == 2
+    assert "hint:" in capsys.readouterr().err

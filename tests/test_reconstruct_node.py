@@ -1,0 +1,60 @@
+"""The Reconstruct action across processes, as a task planner calls it: `n2d launch reconstruct`, an rclpy
+client here; feedback, a complete model directory, cancel (the worker stops, the partial stays) and resume."""
+
+import json
+
+import pytest
+from action_msgs.msg import GoalStatus
+from helpers import wait_future
+
+from n2d.launch_description import load
+from n2d.launcher import Launch
+from n2d_common.contracts import read_manifest
+from n2d_common.ros import SafeActionClient, background_node
+from n2d_interfaces.action import Reconstruct
+from n2d_sim.session import render_session, small_world
+
+SMALL = "{mesh: {voxel_m: 0.003, target_faces: 3000}, texture: {size_px: 128}}"
+
+
+
+@pytest.mark.timeout(600)
+def test_reconstruct_action(tmp_path, ros_domain):
+    session = tmp_path / "session"
+    render_session(session, small_world("box", 240, 180), 12)
+    logs = []
+    with Launch(load("reconstruct"), {}, log=logs.append) as launch:
+        with background_node("test_planner", ros_domain) as node:
+            client = SafeActionClient(node, Reconstruct, "/n2d/reconstruct")
+            assert client.wait_for_server(timeout_sec=60), logs[-20:]
+
+            # cancel as soon as the job reports: the worker stops, the partial directory stays for a resume
+            cancelled = tmp_path / "cancelled"
+            request = Reconstruct.Goal(session_dir=str(session), model_dir=str(cancelled), config_yaml=SMALL)
+            goal = wait_future(client.send_goal_async(request, feedback_callback=lambda _: goal.cancel_goal_async()),
+                               60)
+            assert goal.accepted
+            result = wait_future(goal.get_result_async(), 300)
+            assert result.status == GoalStatus.STATUS_CANCELED, (result.result.message, logs[-20:])
+            assert not cancelled.exists() and cancelled.with_name("cancelled.partial").is_dir()
+
+            feedback = []
+            model = tmp_path / "model"
+            goal = wait_future(client.send_goal_async(Reconstruct.Goal(session_dir=str(session), model_dir=str(model),
+                                                                 method="fast", config_yaml=SMALL),
+                                                feedback_callback=lambda f: feedback.append(f.feedback)), 60)
+            result = wait_future(goal.get_result_async(), 300)
+            assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, logs[-20:])
+            report = json.loads(result.result.report_json)
+            assert report["model"]["watertight"] and report["heldout"]["mesh_psnr_db"] > 10
+            assert read_manifest(model)["complete"]
+            stages = [f.stage for f in feedback]
+            assert {"load", "mesh", "texture", "report"} <= set(stages), stages
+            assert all(a.progress <= b.progress + 1e-6 for a, b in zip(feedback, feedback[1:]))
+
+            # bad input: aborted with the reason
+            goal = wait_future(client.send_goal_async(Reconstruct.Goal(session_dir=str(tmp_path / "nowhere"),
+                                                                 model_dir=str(tmp_path / "m3"))), 60)
+            result = wait_future(goal.get_result_async(), 60)
+            assert result.status == GoalStatus.STATUS_ABORTED and "nowhere" in result.result.message
+            assert not launch.dead()
