@@ -6,9 +6,9 @@ Runs what `n2d capture` runs: the servo emulator (its own process, on a pty) dri
 `Turntable` driver, `SimCamera` frames (640x480, sensor noise) at the plate's true angle, `capture()`
 twice (empty plate, then the object). Each view's true plate angle and exact mask are recorded as it
 is grabbed. Prints the wall time of both sweeps and of processing (poses + masks); the camera pose
-error in the plate-attached turntable frame, split by where the pose came from (the view's own
-board pose, or the servo angle where the object hides the board), plus the servo-angle pose of
-every view, as few views need it; the mask IoU against the exact masks; and with `--calibrate` the
+error in the plate-attached turntable frame, split by where the pose came from (the servo angle and
+the axis fitted over the sweep, the default; the view's own board pose with `--board-poses`; the servo
+angle alone where the board is hidden); the mask IoU against the exact masks; and with `--calibrate` the
 error of the focal length calibrated from the board. With `--out` the session (contact_sheet.png
 included) is kept there, else it goes to a temporary directory.
 """
@@ -33,7 +33,6 @@ from n2d_capture.masks import iou
 from n2d_capture.session import read_session
 from n2d_capture.sweep import Frame, SweepConfig
 from n2d_capture.turntable import Turntable, TurntableConfig
-from n2d_capture.turntable_frame import TurntableFit, camera_pose
 from n2d_common.frames import inv_T, rot_z
 from n2d_common.images import read_png
 from n2d_sim.camera import SimCamera
@@ -115,23 +114,20 @@ def run(session: Path, world: SimWorldConfig, cfg: CaptureConfig, overwrite: boo
     process_s = info["process_s"]
     views = read_session(session).views
     T_cam_tt = T_cam_turntable(world)
-    fit = TurntableFit.from_dict(info["turntable_fit"])
-    # The servo fallback's pose of every view, not only of those that needed it (often none do).
-    errors: dict[str, list[tuple[float, float]]] = {"board": [], "servo": [], "every": []}
+    errors: dict[str, list[tuple[float, float]]] = {"axis": [], "board": [], "servo": []}
     ious = []
     for view, record in zip(views, info["views"], strict=True):
         angle, mask = recording.truth[record["stamp_s"]]
         truth = inv_T(T_cam_tt @ rot_z(angle))
         errors[record["pose_source"]].append(_errors(view.T_turntable_cam, truth))
-        errors["every"].append(_errors(camera_pose(fit, None, record["angle_rad"]), truth))
         ious.append(iou(read_png(view.mask) > 0, mask))
 
     rows = [("views, object, size", f"{len(views)}, {world.object}, {world.width}x{world.height}", "", ""),
             ("empty-plate sweep", f"{empty_s:.1f} s", "", ""),
             ("object sweep", f"{object_and_process_s - process_s:.1f} s", "", ""),
             ("processing (poses + masks)", f"{process_s:.1f} s", "", "")]
-    titles = {"board": "views posed from their board", "servo": "views posed from the servo angle",
-              "every": "every view posed from the servo angle"}
+    titles = {"axis": "views posed from the fitted axis", "board": "views posed from their board",
+              "servo": "views posed from the servo angle alone"}
     for source_name, errs in errors.items():
         rot, trans = [e[0] for e in errs], [e[1] for e in errs]
         rows += [(titles[source_name], str(len(errs)), "", ""),
@@ -157,12 +153,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--object", default="box", help="sample object (box, bottle) or model directory")
     parser.add_argument("--calibrate", action="store_true",
                         help="calibrate the focal length from the board (intrinsics: calibrate) instead of CameraInfo")
+    parser.add_argument("--board-poses", action="store_true", help="pose each view from its own board pose "
+                        "(pose_from: board) instead of the fitted axis")
     parser.add_argument("--out", type=Path, help="keep the session here (default: a temporary directory)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing session at --out")
     args = parser.parse_args(argv)
     world = SimWorldConfig(object=args.object)
     cfg = CaptureConfig(sweep=SweepConfig(views=args.views),
-                        intrinsics="calibrate" if args.calibrate else "camera_info")
+                        intrinsics="calibrate" if args.calibrate else "camera_info",
+                        pose_from="board" if args.board_poses else "axis")
     with tempfile.TemporaryDirectory(prefix="n2d-bench-capture-") as tmp:
         session = args.out.absolute() if args.out else Path(tmp) / "session"
         rows = run(session, world, cfg, args.overwrite)

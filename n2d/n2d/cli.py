@@ -156,8 +156,9 @@ def cmd_capture(args) -> int:
     if not summary["complete"]:
         print(f"capture: {summary['views']} empty-plate views kept; {summary['message']}")
         return 0
-    print(f"capture: {summary['views']} views ({summary['posed_from_board']} posed from the board, "
-          f"{summary['posed_from_servo']} from the servo angle); turntable fit residual "
+    print(f"capture: {summary['views']} views ({summary['posed_from_axis']} posed from the fitted axis, "
+          f"{summary['posed_from_board']} from their board pose, {summary['posed_from_servo']} from the servo "
+          f"angle alone); turntable fit residual "
           f"{summary['fit_rotation_residual_deg']:.3f} deg / {summary['fit_translation_residual_mm']:.2f} mm")
     print(f"capture: wrote {args.session}/ (transforms.json, capture.json, contact_sheet.png)")
     return 0

@@ -4,8 +4,11 @@
 `empty_plate=True` records the empty-plate sweep (the background reference) and leaves the session
 unfinished; the next call records (or resumes) the object sweep at the same angles and then
 `process_session()` turns both into the session contract: every view posed in the metric,
-gravity-aligned, plate-attached turntable frame (from its own board pose, or from the servo angle
-composed with the fitted axis where the object hides the board), and masked.
+gravity-aligned, plate-attached turntable frame, and masked. A view's pose comes from its servo angle
+composed with the rotation axis fitted over the whole sweep (`pose_from: axis`, the default: the fit
+averages the board's per-view noise; in the simulator it is ten times more accurate than single board
+poses), or from its own board pose (`pose_from: board`, or where the servo angle is unknown or does
+not follow the plate), or from the servo angle where the object hides the board.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ class CaptureConfig:
     """Where K comes from: the camera's CameraInfo, or a calibration from the board in the sweeps."""
     max_board_rms_px: float = 1.0
     """Board poses with a larger corner reprojection error (px) are not trusted."""
+    pose_from: Literal["axis", "board"] = "axis"
+    """axis: views with a servo angle are posed from it and the axis fitted over the sweep; board: each view
+    from its own board pose where the board is visible."""
 
     def __post_init__(self):
         if self.max_board_rms_px <= 0:
@@ -124,7 +130,9 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
     records, frames, sheet = [], [], []
     for i, (view, img) in enumerate(zip(views, images)):
         progress(Progress(0.2 + 0.7 * i / len(views), "masking", message=f"view {i + 1}/{len(views)}"))
-        T_turntable_cam = camera_pose(fit, poses[i].T_cam_board if poses[i] else None, view["angle_rad"])
+        source = ("axis" if cfg.pose_from == "axis" and view["angle_rad"] is not None and fit.servo_usable
+                  else "board" if poses[i] else "servo")
+        T_turntable_cam = camera_pose(fit, poses[i].T_cam_board if source == "board" else None, view["angle_rad"])
         geometry = ViewGeometry(intr.K, inv_T(T_turntable_cam), cfg.board)
         ref = references.get(view["index"])
         mask = (foreground_mask(img, ref, geometry, cfg.masks) if ref is not None
@@ -134,7 +142,7 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
         frames.append((view["file"], mask_file, T_turntable_cam))
         records.append({"index": view["index"], "file": view["file"], "mask": mask_file,
                         "angle_rad": view["angle_rad"], "stamp_s": view["stamp_s"],
-                        "pose_source": "board" if poses[i] else "servo",
+                        "pose_source": source,
                         "board_corners": len(detections[i]) if detections[i] is not None else 0,
                         "board_rms_px": poses[i].rms_px if poses[i] else None,
                         "mask_pixels": int(mask.sum()), "mask_method": "reference" if ref is not None else "geometry"})
@@ -143,7 +151,7 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
         sheet.append(_overlay(img, mask, intr, inv_T(T_turntable_cam), label))
     progress(Progress(0.95, "writing"))
     atomic_write_json(directory / "transforms.json", transforms_json(intr.K, intr.dist, width, height, frames))
-    from_board = sum(r["pose_source"] == "board" for r in records)
+    sources = [r["pose_source"] for r in records]
     info = {"board": cfg.board.to_dict(), "intrinsics": intr.to_dict(), "intrinsics_source": cfg.intrinsics,
             "turntable_fit": fit.to_dict(), "fit_on": "empty" if fit_views is not views else "images",
             "views": records, "empty_views": len(empty), "process_s": round(time.monotonic() - t0, 2)}
@@ -151,7 +159,8 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
     write_png(directory / "contact_sheet.png", contact_sheet(sheet, cols=min(6, len(sheet)), thumb_width=240))
     inl = fit.inliers
     progress(Progress(1.0, "writing"))
-    return {"views": len(records), "posed_from_board": from_board, "posed_from_servo": len(records) - from_board,
+    return {"views": len(records), "posed_from_axis": sources.count("axis"), "posed_from_board": sources.count("board"),
+            "posed_from_servo": sources.count("servo"),
             "fit_rotation_residual_deg": float(np.nanmedian(fit.rotation_residual_deg[inl])),
             "fit_translation_residual_mm": float(np.nanmedian(fit.translation_residual_mm[inl])),
             "focal_px": intr.fx}

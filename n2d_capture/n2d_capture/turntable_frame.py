@@ -58,6 +58,11 @@ class TurntableFit:
     board_tilt_deg: float
     """Angle between the rotation axis and the board's normal (0 for a flat board on a level plate)."""
 
+    @property
+    def servo_usable(self) -> bool:
+        """Whether servo angles can place views: the fit had them and the plate followed them 1:1."""
+        return self.servo_offset_rad is not None and abs(self.servo_scale - 1.0) <= SERVO_SCALE_TOLERANCE
+
     def to_dict(self) -> dict:
         """JSON-safe form for capture.json (NaN becomes None)."""
         def plain(a):

@@ -45,8 +45,12 @@ class RefineConfig:
     """Views that see the surface more obliquely than this cosine are not used."""
     min_ncc: float = 0.5
     """A vertex moves only where the best mean NCC reaches this."""
-    min_contrast: float = 3.0
-    """A vertex moves only where its reference patch has this much grey-level standard deviation (0..255)."""
+    min_contrast: float = 6.0
+    """A vertex moves only where its reference patch has this much grey-level standard deviation (0..255;
+    the sensor noise alone gives about 3)."""
+    min_prominence: float = 0.2
+    """A vertex moves only where the best NCC exceeds the median NCC over the searched depths by this much
+    (flat or self-similar texture matches at every depth)."""
     agree_steps: int = 2
     """A view agrees with the chosen depth when its own best depth is within this many steps."""
     min_agreeing_views: int = 4
@@ -174,5 +178,6 @@ def _search(v, n, order, depths, spacing: float, views: Views, grey: torch.Tenso
     curvature = y0 - 2 * y1 + y2
     shift = np.where((curvature < 0) & (lo < best) & (hi > best), 0.5 * (y0 - y2) / np.minimum(curvature, -1e-9), 0.0)
     depth = depths[best] + np.clip(shift, -0.5, 0.5) * (depths[1] - depths[0])
-    ok = agree & (score >= cfg.min_ncc) & (std[np.arange(len(v)), 0, best] >= cfg.min_contrast)
+    prominent = score - np.median(ncc, axis=1) >= cfg.min_prominence
+    ok = agree & prominent & (score >= cfg.min_ncc) & (std[np.arange(len(v)), 0, best] >= cfg.min_contrast)
     return np.where(ok, depth, np.nan)

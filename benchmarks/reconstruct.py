@@ -1,0 +1,114 @@
+"""Benchmark of the reconstruction stage on simulator sessions: wall time, geometry and held-out image quality.
+
+    python benchmarks/reconstruct.py [--session DIR] [--object box] [--views 36] [--exact] [--methods fast]
+
+The session is, in order of preference: `--session DIR` (an existing capture session of a sample
+object standing at the plate centre, e.g. from `benchmarks/capture.py --out DIR`); else a new one
+captured like `n2d capture` does it (servo emulator + real driver + sim camera, poses from the
+board, masks by segmentation: what a lab gets); with `--exact`, one rendered with the simulator's
+exact poses and masks (the reconstruction alone). Each method then reconstructs it with its default
+config and is measured against the sample object's true mesh: Chamfer distance (mean of both
+directions, exact point-to-surface), F-score at 1 mm, bounding-box size error, and PSNR / SSIM /
+FLIP of held-out views (every 8th, over the object mask) for the textured mesh and, for NeuS, the
+radiance field. One table for all methods.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
+from n2d_sim.objects import sample_object_dir
+from n2d_sim.session import render_session
+from n2d_sim.world import SimWorldConfig
+from table import print_table
+
+GOALS = {"fast": {"seconds": 300, "chamfer_pct": 1.0},
+         "neus": {"chamfer_pct": 0.5, "psnr_db": 33.0, "ssim": 0.98}}
+"""The stage's targets per method (issue: fast <= 5 min and Chamfer <= 1 % of the diameter; NeuS Chamfer
+<= 0.5 %, held-out field PSNR >= 33 dB and SSIM >= 0.98 on the object mask)."""
+BBOX_GOAL_PCT = 1.0
+"""The exported mesh's bounding box should match the truth within this."""
+
+
+def _session(args, tmp: Path) -> tuple[Path, str]:
+    if args.session:
+        return args.session, f"given: {args.session}"
+    session = tmp / "session"
+    world = SimWorldConfig(object=args.object)
+    if args.exact:
+        render_session(session, world, args.views)
+        return session, f"{args.views} views, {world.width}x{world.height}, exact poses and masks"
+    sys.path.insert(0, str(Path(__file__).parent))
+    from capture import run as capture_run  # the capture benchmark's recording: the same code as n2d capture
+
+    from n2d_capture.capture import CaptureConfig
+    from n2d_capture.sweep import SweepConfig
+
+    capture_run(session, world, CaptureConfig(sweep=SweepConfig(views=args.views)), overwrite=False)
+    return session, f"{args.views} views, {world.width}x{world.height}, captured (board poses, segmented masks)"
+
+
+def _met(ok: bool) -> str:
+    return "yes" if ok else "NO"
+
+
+def _rows(method: str, report: dict, wall_s: float) -> list[tuple[str, ...]]:
+    goals, g, h = GOALS.get(method, {}), report["geometry"], report["heldout"]
+    rows = [(method, "wall time", f"{wall_s:.0f} s",
+             f"<= {goals['seconds']} s" if "seconds" in goals else "", _met(wall_s <= goals["seconds"])
+             if "seconds" in goals else "")]
+    phases = ", ".join(f"{k} {v:.0f}" for k, v in report["timings_s"].items() if k != "total")
+    rows.append((method, "  phases (s)", phases, "", ""))
+    rows.append((method, "Chamfer", f"{g['chamfer_mm']:.3f} mm = {g['chamfer_pct_diameter']:.2f} % of diameter",
+                 f"<= {goals['chamfer_pct']} %", _met(g["chamfer_pct_diameter"] <= goals["chamfer_pct"])))
+    rows.append((method, "  accuracy / completeness", f"{g['accuracy_mm']:.3f} / {g['completeness_mm']:.3f} mm",
+                 "", ""))
+    rows.append((method, f"F-score at {g['fscore_threshold_mm']:g} mm", f"{g['fscore']:.3f}", "", ""))
+    worst = max(abs(x) for x in g["bbox_size_error_pct"])
+    rows.append((method, "bbox size error x, y, z", ", ".join(f"{x:+.2f} %" for x in g["bbox_size_error_pct"]),
+                 f"within {BBOX_GOAL_PCT} %", _met(worst <= BBOX_GOAL_PCT)))
+    if h:
+        for name in ("field", "mesh"):
+            if f"{name}_psnr_db" not in h:
+                continue
+            label = "radiance field" if name == "field" else "textured mesh"
+            psnr_ok = h[f"{name}_psnr_db"] >= goals.get("psnr_db", 0) and h[f"{name}_ssim"] >= goals.get("ssim", 0)
+            want = f">= {goals['psnr_db']} dB, {goals['ssim']}" if name == "field" and "psnr_db" in goals else ""
+            rows.append((method, f"held-out {label} PSNR, SSIM, FLIP",
+                         f"{h[f'{name}_psnr_db']:.2f} dB, {h[f'{name}_ssim']:.4f}, {h[f'{name}_flip']:.4f}",
+                         want, _met(psnr_ok) if want else ""))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--session", type=Path, help="an existing capture session of a sample object")
+    parser.add_argument("--object", default="box", help="sample object (box, bottle)")
+    parser.add_argument("--views", type=int, default=36, help="views of a new session")
+    parser.add_argument("--exact", action="store_true", help="a new session with the simulator's exact poses/masks")
+    parser.add_argument("--methods", default="fast", help="comma-separated methods to run")
+    parser.add_argument("--out", type=Path, help="keep the models here (default: a temporary directory)")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="n2d-bench-reconstruct-") as tmp:
+        session, described = _session(args, Path(tmp))
+        out_root = args.out or Path(tmp)
+        rows = []
+        for method in args.methods.split(","):
+            cfg = ReconstructConfig(method=method, object_name=args.object)
+            t0 = time.perf_counter()
+            report = reconstruct(session, out_root / f"model_{method}", cfg,
+                                 ground_truth=sample_object_dir(args.object), overwrite=True)
+            rows += _rows(method, report, time.perf_counter() - t0)
+    print_table(f"Reconstruction benchmark ({args.object}; session: {described}; this machine)", rows,
+                ("method", "metric", "value", "goal", "met"))
+    if args.out:
+        print(f"models: {args.out}/model_<method> (preview.png, report.json)")
+
+
+if __name__ == "__main__":
+    main()
