@@ -37,10 +37,10 @@ def _progress_bar(desc: str):
     return report
 
 
-def _config(cls, args):
+def _config(cls, args, base=None):
     from n2d_common.config import load_config
 
-    return load_config(cls, args.config, args.set)
+    return load_config(cls, args.config, args.set, base=base)
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
@@ -179,9 +179,11 @@ def cmd_capture_import(args) -> int:
 def cmd_reconstruct(args) -> int:
     import threading
 
+    from n2d_reconstruct.neus import NeusConfig
     from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 
-    cfg = _config(ReconstructConfig, args)
+    # The preset is the base that --config and --set refine.
+    cfg = _config(ReconstructConfig, args, base=ReconstructConfig(neus=NeusConfig.preset(args.neus_preset)))
     if args.method:
         cfg.method = args.method
     if args.name:
@@ -198,6 +200,9 @@ def cmd_reconstruct(args) -> int:
           f"{report['timings_s']['total']:.0f} s")
     if held:
         print(f"reconstruct: held-out textured mesh PSNR {held['mesh_psnr_db']:.2f} dB, SSIM {held['mesh_ssim']:.4f}")
+        if "field_psnr_db" in held:
+            print(f"reconstruct: held-out radiance field PSNR {held['field_psnr_db']:.2f} dB, "
+                  f"SSIM {held['field_ssim']:.4f}")
     if "geometry" in report:
         g = report["geometry"]
         print(f"reconstruct: Chamfer {g['chamfer_mm']:.3f} mm ({g['chamfer_pct_diameter']:.2f} % of the diameter), "
@@ -268,12 +273,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("reconstruct", help="turn a capture session into a textured, metric mesh",
                        description="Reconstruct the object of a capture session: geometry (fast: visual hull of the "
-                       "masks; CPU, minutes), mesh, UV atlas and albedo from the photos, in metres in the object "
-                       "frame (bounding-box centre, Z up), plus models_info.json, report.json (held-out PSNR/SSIM/"
+                       "masks refined by photo-consistency, CPU, minutes; neus: a NeuS hash-grid SDF trained from the "
+                       "hull, CUDA when present, with a checkpoint a re-run resumes from), mesh, UV atlas and albedo "
+                       "(from the photos, or NeuS's colour field), in metres in the object frame (bounding-box "
+                       "centre, Z up), plus models_info.json, report.json (held-out PSNR/SSIM/"
                        "FLIP, Chamfer against --ground-truth) and preview.png.")
     p.add_argument("session", type=Path, help="capture session directory")
     p.add_argument("out", type=Path, help="model directory to write")
-    p.add_argument("--method", choices=["fast"], help="reconstruction method (default: the config's, fast)")
+    p.add_argument("--method", choices=["fast", "neus"], help="reconstruction method (default: the config's, fast)")
+    p.add_argument("--neus-preset", choices=["tiny", "cpu", "gpu"], default="cpu",
+                   help="NeuS size: cpu (2 cores, tens of minutes), gpu (the paper's scale), tiny (tests)")
     p.add_argument("--name", help="object name (default: the config's object_name)")
     p.add_argument("--ground-truth", type=Path, help="model directory of the true object (the simulator's sample "
                    "objects) standing at the plate centre: measure Chamfer and F-score")

@@ -1,7 +1,8 @@
 """The reconstruction stage: capture session -> model directory (textured metric mesh + report).
 
-Phases: load (checks) -> geometry (the visual hull field, `fast`; or NeuS trained from it, `neus`)
--> mesh (narrow-band marching cubes, clean-up) -> texture (xatlas, bake) -> export (object frame,
+Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
+from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
+texture (xatlas; baked from the photos, or from the NeuS colour field) -> export (object frame,
 OBJ/GLB, models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
 keeps its checkpoint there and the next run with the same config resumes from it.
@@ -25,22 +26,28 @@ from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.export import object_frame, write_model
 from n2d_reconstruct.hull import HullConfig, VisualHull, search_box
-from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh
+from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
+from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
-from n2d_reconstruct.texture import TextureConfig, bake_from_views, unwrap
+from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_views, unwrap
 
-PHASES = {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.4, "texture": 0.25, "export": 0.05,
-          "report": 0.15}
-"""Share of the progress bar of each phase of the fast path."""
+PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.4, "texture": 0.25, "export": 0.05,
+                   "report": 0.15},
+          "neus": {"load": 0.01, "geometry": 0.85, "mesh": 0.04, "texture": 0.04, "export": 0.01, "report": 0.05}}
+"""Share of the progress bar of each phase, per method."""
+AABB_MARGIN_M = 0.01
+"""NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
 
 
 @dataclass
 class ReconstructConfig:
     """Capture session to model."""
 
-    method: Literal["fast"] = "fast"
-    """fast: visual hull from the masks refined by photo-consistency, textured from the photos (CPU, minutes)."""
+    method: Literal["fast", "neus"] = "fast"
+    """fast: visual hull from the masks refined by photo-consistency, textured from the photos (CPU, minutes);
+    neus: a NeuS hash-grid SDF trained from the hull (CUDA when present; see neus.*), textured from its colour
+    field."""
     object_name: str = "object"
     """Name of the object (written into the model files and the manifest)."""
     holdout_every: int = 8
@@ -57,6 +64,8 @@ class ReconstructConfig:
     """Photo-consistency refinement of the hull."""
     texture: TextureConfig = field(default_factory=TextureConfig)
     """UV atlas and albedo."""
+    neus: NeusConfig = field(default_factory=lambda: NeusConfig.preset("cpu"))
+    """NeuS training (method neus); the default is the "cpu" preset (`n2d reconstruct --neus-preset gpu`)."""
 
     def __post_init__(self):
         if self.holdout_every < 0 or self.holdout_every == 1:
@@ -68,14 +77,14 @@ class ReconstructConfig:
 class _Phases:
     """Progress across the phases, and their wall times."""
 
-    def __init__(self, progress: ProgressFn, cancel: threading.Event | None):
-        self.progress, self.cancel = progress, cancel
+    def __init__(self, method: str, progress: ProgressFn, cancel: threading.Event | None):
+        self.shares, self.progress, self.cancel = PHASES[method], progress, cancel
         self.done, self.times, self.eta = 0.0, {}, Eta()
 
     def run(self, name: str, fn, *args, **kwargs):
         if self.cancel is not None and self.cancel.is_set():
             raise Cancelled(f"reconstruction cancelled before the {name} phase", "re-run the same command to resume")
-        share, start = PHASES[name], time.monotonic()
+        share, start = self.shares[name], time.monotonic()
 
         def sub(p: Progress) -> None:
             fraction = self.done + share * p.fraction
@@ -93,8 +102,17 @@ def _load(session_dir, cfg: ReconstructConfig, progress: ProgressFn):
     return load_session(session_dir, holdout_every=cfg.holdout_every, min_views=cfg.min_views)
 
 
-def _hull(data, cfg: ReconstructConfig, progress: ProgressFn):
-    return VisualHull(data.train, cfg.hull)
+def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: ProgressFn):
+    """The SDF to mesh and the NeuS field (None for the fast path)."""
+    hull = VisualHull(data.train, cfg.hull)
+    if cfg.method == "fast":
+        return hull, None
+    box = locate(hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh.locate_voxel_m)
+    aabb = box + [[-AABB_MARGIN_M] * 3, [AABB_MARGIN_M] * 3]
+    aabb[0, 2] = max(aabb[0, 2], cfg.hull.plate_clearance_m - cfg.mesh.voxel_m)
+    field = train_neus(data.train, aabb, cfg.neus, workdir=workdir, init_sdf=hull, progress=progress, cancel=cancel)
+    plate = cfg.hull.plate_clearance_m
+    return (lambda p: np.maximum(field.sdf(p), plate - p[:, 2])), field
 
 
 def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
@@ -104,9 +122,12 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     return clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations)), stats
 
 
-def _texture(mesh, views, cfg: TextureConfig, progress: ProgressFn):
+def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: ProgressFn):
     progress(Progress(0.0, "texture", message="unwrapping (xatlas)"))
     tm = unwrap(mesh, cfg)
+    if neus is not None:
+        tm.albedo = bake_from_function(tm, neus.albedo, cfg.size_px)
+        return tm
     tm.albedo = bake_from_views(tm, views, cfg, progress=lambda p: progress(Progress(0.5 + 0.5 * p.fraction, "texture",
                                                                                      message=p.message)))
     return tm
@@ -120,18 +141,20 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
     `ground_truth`: a model directory of the true object (the simulator's), placed as the simulator
     places it, to measure the geometry. Raises ContractError for bad input, Cancelled on `cancel`.
     """
-    phases = _Phases(progress, cancel)
+    phases = _Phases(cfg.method, progress, cancel)
     session_dir = Path(session_dir)
     data = phases.run("load", _load, session_dir, cfg)  # bad input fails before anything is written
     with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
-        hull = phases.run("geometry", _hull, data, cfg)
-        mesh = phases.run("mesh", extract_mesh, hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh)
-        mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
-        tm = phases.run("texture", _texture, mesh, data.train, cfg.texture)
+        sdf, neus = phases.run("geometry", _geometry, data, cfg, writer.path, cancel)
+        mesh = phases.run("mesh", extract_mesh, sdf, search_box(data.plate_radius_m, cfg.hull), cfg.mesh)
+        refined = None
+        if cfg.method == "fast":
+            mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
+        tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
         info = phases.run("export", lambda progress: write_model(writer.path, tm.transformed(inv_T(T_turntable_obj)),
                                                                  cfg.object_name))
-        report = phases.run("report", _report, writer.path, data, tm, mesh, ground_truth, cfg)
+        report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
         report["refine"] = refined
         report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
         report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,
@@ -147,14 +170,16 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         return report
 
 
-def _report(directory: Path, data, tm, mesh, ground_truth, cfg: ReconstructConfig, progress: ProgressFn) -> dict:
+def _report(directory: Path, data, tm, mesh, neus, ground_truth, cfg: ReconstructConfig,
+            progress: ProgressFn) -> dict:
     report: dict = {"method": cfg.method, "views": {"train": len(data.train), "heldout": len(data.heldout)}}
     # Without held-out views the preview shows training views, and no image metrics are reported.
     shown = data.heldout if len(data.heldout) else data.train.subset(list(range(min(3, len(data.train)))))
-    metrics, rows = image_metrics(shown, tm)
+    metrics, rows = image_metrics(shown, tm, neus.render if neus is not None else None)
     report["heldout"] = metrics if len(data.heldout) else None
     label = "photo (held out)" if len(data.heldout) else "photo (training)"
-    write_preview(directory / "preview.png", rows, [label, "textured mesh", "geometry"])
+    labels = [label, "textured mesh"] + (["radiance field"] if neus is not None else []) + ["geometry"]
+    write_preview(directory / "preview.png", rows, labels)
     if ground_truth is not None:
         report["geometry"] = geometry_metrics(mesh, ground_truth_mesh(Path(ground_truth)), cfg.fscore_threshold_m)
     return report

@@ -1,0 +1,189 @@
+"""NeuS hash-grid field: encoding gradients, training on a small simulated session, cancel/resume, divergence,
+pretraining to an initial SDF, save/load. CPU, "tiny" preset; asserts outcomes, never times."""
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from n2d_common.errors import Cancelled, N2DError
+from n2d_reconstruct.data import load_session
+from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
+from n2d_reconstruct.neus.encoding import HashGrid
+from n2d_sim.session import render_session, small_world
+
+BOX_HALF_M = np.array([0.045, 0.03, 0.07])
+"""Half extents of the simulator's box (90 x 60 x 140 mm)."""
+PSNR_FLOOR_DB = 17.0
+"""Held-out PSNR on the mask the tiny preset must beat after its 300 steps (it reaches ~21 dB here)."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """A 160x120 box session of 12 views (2 held out), its box in the turntable frame and the object pose."""
+    out = tmp_path_factory.mktemp("neus") / "box"
+    gt = render_session(out, small_world("box", 160, 120), views=12)
+    data = load_session(out, holdout_every=6)
+    centre = gt.T_turntable_obj[:3, 3] + gt.T_turntable_obj[:3, :3] @ np.array([0.0, 0.0, BOX_HALF_M[2]])
+    reach = np.abs(gt.T_turntable_obj[:3, :3]) @ BOX_HALF_M + 0.01
+    aabb = np.stack([centre - reach, centre + reach])
+    aabb[0, 2] = 0.0
+    return data, aabb, gt.T_turntable_obj
+
+
+def box_sdf(points, T_turntable_obj):
+    """Analytic signed distance (metres) of the simulator's box standing at its pose."""
+    R, t = T_turntable_obj[:3, :3], T_turntable_obj[:3, 3]
+    local = (points - t) @ R - np.array([0.0, 0.0, BOX_HALF_M[2]])
+    q = np.abs(local) - BOX_HALF_M
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0)
+
+
+@pytest.fixture(scope="module")
+def trained(session, tmp_path_factory):
+    data, aabb, _ = session
+    reports = []
+    workdir = tmp_path_factory.mktemp("neus_train")
+    field = train_neus(data.train, aabb, NeusConfig.preset("tiny"), workdir=workdir, progress=reports.append)
+    return field, reports, workdir
+
+
+def test_hash_grid_jacobian_and_table_gradient_match_autograd():
+    torch.manual_seed(0)
+    grid = HashGrid(levels=6, features=2, log2_table=10, base_res=4, max_res=100).double()
+    grid.table.data.normal_()
+    x = torch.rand(30, 3, dtype=torch.float64) * 0.98 + 0.01
+    enc, jac = grid(x, jacobian=True)
+    eye = torch.eye(3, dtype=torch.float64) * 1e-6
+    numeric = torch.stack([(grid(x + eye[d])[0] - grid(x - eye[d])[0]) / 2e-6 for d in range(3)])
+    assert torch.allclose(jac.permute(0, 2, 1), numeric, atol=1e-3 * float(jac.detach().abs().max()))
+    # the table gradient of (enc, contracted jacobian) against plain autograd through table[idx]
+    v = torch.randn_like(enc)
+    ((enc * v).sum() + HashGrid.contract(jac, v).square().sum()).backward()
+    mine = grid.table.grad.clone()
+    grid.table.grad = None
+    xr = x.clone().requires_grad_(True)
+    pos = xr[:, None, :] * grid.res[None, :, None].double()
+    cell = pos.detach().floor()
+    frac = pos - cell
+    ref = 0.0
+    for corner in np.ndindex(2, 2, 2):
+        c = cell.long() + torch.tensor(corner)
+        mult = grid.mult.T.long()
+        rows = (c[..., 0] * mult[:, 0]) ^ (c[..., 1] * mult[:, 1]) ^ (c[..., 2] * mult[:, 2])
+        rows = (rows & (grid.table_size - 1)) + torch.arange(grid.levels) * grid.table_size
+        w = torch.ones_like(frac[..., 0])
+        for d in range(3):
+            w = w * (frac[..., d] if corner[d] else 1 - frac[..., d])
+        ref = ref + w[..., None] * grid.table[rows]
+    ref = ref.reshape(len(x), -1)
+    ref_jac = torch.autograd.grad((ref * v).sum(), xr, create_graph=True)[0]
+    ((ref * v).sum() + ref_jac.square().sum()).backward()
+    assert torch.allclose(enc, ref)
+    assert torch.allclose(mine, grid.table.grad, atol=1e-6 * float(mine.abs().max()))
+
+
+def test_training_reduces_the_loss_and_finds_the_object(session, trained):
+    data, aabb, T_obj = session
+    field, reports, workdir = trained
+    losses = [r.info["loss"] for r in reports if np.isfinite(r.info.get("loss", np.nan))]
+    assert np.mean(losses[-3:]) < 0.6 * np.mean(losses[:3])
+    assert reports[-1].fraction == 1.0 and reports[-1].stage == "neus"
+    assert reports[-1].message.startswith("step 300/300 loss ")
+    assert {"step", "steps", "loss", "psnr"} <= set(reports[-1].info)
+    centre = T_obj[:3, 3] + np.array([0.0, 0.0, BOX_HALF_M[2]])
+    inside = field.sdf(centre[None])[0]
+    assert inside < -0.01, "the SDF is not negative at the object's centre"
+    corners = np.array([[x, y, 0.01] for x in aabb[:, 0] for y in aabb[:, 1]]) * [0.9, 0.9, 1.0]
+    rim = np.array([[0.15 * np.cos(a), 0.15 * np.sin(a), 0.01] for a in np.linspace(0, 2 * np.pi, 8)])
+    assert (field.sdf(corners) > 0).all(), "free space inside the box near the plate is not outside"
+    assert (field.sdf(rim) > 0).all()
+    assert (workdir / "neus.pt").is_file()
+
+
+def test_rendered_held_out_view_resembles_the_photo(session, trained):
+    data, _, _ = session
+    field = trained[0]
+    view = data.heldout
+    mask = view.masks[0]
+    image = field.render(view.K, view.T_turntable_cam[0], view.width, view.height, pixel_mask=mask)
+    assert image.shape == (view.height, view.width, 3) and image.dtype == np.float32
+    assert (image[~mask] == 0).all()
+    mse = np.mean((image[mask] - view.rgb[0][mask] / 255.0) ** 2)
+    psnr = -10 * np.log10(mse)
+    assert psnr > PSNR_FLOOR_DB, f"held-out PSNR {psnr:.1f} dB"
+    full = field.render(view.K, view.T_turntable_cam[0], view.width, view.height)
+    np.testing.assert_allclose(full[mask], image[mask], atol=1e-5)
+
+
+def test_save_load_and_albedo(trained, tmp_path):
+    field = trained[0]
+    field.save(tmp_path / "field.pt")
+    loaded = NeusField.load(tmp_path / "field.pt")
+    points = np.random.default_rng(0).uniform(field.aabb[0], field.aabb[1], (100, 3))
+    np.testing.assert_allclose(loaded.sdf(points), field.sdf(points), atol=1e-6)
+    normals = np.tile([0.0, 0.0, 1.0], (100, 1))
+    albedo = loaded.albedo(points, normals)
+    assert albedo.shape == (100, 3) and (albedo >= 0).all() and (albedo <= 1).all()
+    checkpoint = NeusField.load(trained[2] / "neus.pt")  # a training checkpoint loads as a field too
+    np.testing.assert_allclose(checkpoint.sdf(points), field.sdf(points), atol=1e-6)
+
+
+def test_cancel_saves_and_a_rerun_resumes_from_that_step(session, tmp_path):
+    data, aabb, _ = session
+    cfg = replace(NeusConfig.preset("tiny"), steps=60, checkpoint_every=1000)
+    cancel = threading.Event()
+
+    def stop_at_20(p):
+        if p.info.get("step", 0) >= 20:
+            cancel.set()
+
+    with pytest.raises(Cancelled) as raised:
+        train_neus(data.train, aabb, cfg, workdir=tmp_path, progress=stop_at_20, cancel=cancel)
+    assert "resume from step 20" in raised.value.hint
+    assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 20
+    reports = []
+    train_neus(data.train, aabb, cfg, workdir=tmp_path, progress=reports.append)
+    assert reports[0].info["step"] == 20 and reports[0].message == "starting at step 20/60"
+    assert [r.info["step"] for r in reports[1:]] == [30, 40, 50, 60]
+    assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 60
+    # another configuration does not resume that checkpoint
+    reports.clear()
+    train_neus(data.train, aabb, replace(cfg, steps=10), workdir=tmp_path, progress=reports.append)
+    assert reports[0].info["step"] == 0
+
+
+def test_divergence_raises_a_clear_error(session, tmp_path):
+    data, aabb, _ = session
+    cfg = replace(NeusConfig.preset("tiny"), lr=1e30, warmup_steps=1, steps=20)
+    with pytest.raises(N2DError, match="NeuS training diverged at step") as raised:
+        train_neus(data.train, aabb, cfg, workdir=tmp_path)
+    assert "learning rate" in raised.value.hint
+
+
+def test_pretraining_fits_the_initial_sdf(session, tmp_path):
+    data, aabb, T_obj = session
+    cfg = replace(NeusConfig.preset("tiny"), steps=0, pretrain_steps=150)
+    field = train_neus(data.train, aabb, cfg, workdir=tmp_path, init_sdf=lambda p: box_sdf(p, T_obj))
+    points = np.random.default_rng(1).uniform(aabb[0], aabb[1], (4000, 3))
+    truth = box_sdf(points, T_obj)
+    near = np.abs(truth) < 0.005
+    error = np.abs(field.sdf(points) - truth)
+    assert np.median(error[near]) < 0.002, f"median error near the surface {np.median(error[near]) * 1000:.1f} mm"
+    assert np.mean(np.sign(field.sdf(points[~near])) == np.sign(truth[~near])) > 0.98
+
+
+def test_unknown_preset_is_an_error():
+    with pytest.raises(N2DError, match="unknown NeuS preset"):
+        NeusConfig.preset("huge")
+    assert NeusConfig.preset("gpu").rays > NeusConfig.preset("cpu").rays > NeusConfig.preset("tiny").rays
