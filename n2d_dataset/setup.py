@@ -21,6 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
+            "dataset_node = n2d_dataset.nodes.dataset_node:main",
         ],
     },
 )

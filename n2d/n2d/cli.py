@@ -211,6 +211,32 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def cmd_dataset(args) -> int:
+    import threading
+
+    from n2d_dataset.config import DatasetConfig
+    from n2d_dataset.generate import generate_dataset
+
+    cfg = _config(DatasetConfig, args)
+    for name in ("frames", "workers", "seed"):
+        if getattr(args, name) is not None:
+            setattr(cfg, name, getattr(args, name))
+    cfg.__post_init__()
+    cancel = threading.Event()
+    try:
+        summary = generate_dataset(args.models, args.out, cfg, overwrite=args.overwrite,
+                                   progress=_progress_bar("dataset"), cancel=cancel)
+    except KeyboardInterrupt:
+        cancel.set()
+        raise
+    rate = summary["frames"] - summary["resumed_frames"]
+    print(f"dataset: {summary['frames']} frames, {summary['instances']} annotated instances "
+          f"({rate} rendered in {summary['wall_s']:.0f} s)")
+    print(f"dataset: wrote {args.out}/ (train_pbr/ BOP chunks with DOPE JSON beside each image, models/, "
+          "camera.json, contact_sheet.png)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="n2d", description="n2d: from an object on a turntable to a live 6D pose estimator (ROS 2).",
@@ -289,6 +315,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing model (once the new one is done)")
     _add_config_options(p)
     p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("dataset", help="render a domain-randomised, annotated dataset (BOP + DOPE) of models",
+                       description="Render random scenes of the models (random floors, walls, distractors, lights, "
+                       "physics drops, optional in-hand gripper) with Cycles and write BOP train_pbr chunks (rgb, "
+                       "depth, mask, mask_visib, scene_gt, scene_camera, scene_gt_info) with a DOPE JSON beside "
+                       "each image, models/, camera.json and contact_sheet.png. Ctrl-C keeps finished frames; the "
+                       "same command resumes. Seeded: the same config renders the same frames.")
+    p.add_argument("models", type=Path, nargs="+", help="model directories (from n2d reconstruct)")
+    p.add_argument("out", type=Path, help="dataset directory to write")
+    p.add_argument("--frames", type=int, help="frames to render (default: the config's, 100)")
+    p.add_argument("--workers", type=int, help="render processes (default 1: one process using all cores)")
+    p.add_argument("--seed", type=int, help="seed of every random choice (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset, or discard unfinished "
+                   "work of another config")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_dataset)
 
     p = sub.add_parser("sim", help="start the simulated world until Ctrl-C",
                        description="Start the simulated servo (on a pty at --port) and the simulated camera "

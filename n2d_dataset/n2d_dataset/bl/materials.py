@@ -1,0 +1,124 @@
+"""Materials: Principled BSDF, image textures from arrays, and random procedural surfaces for domain randomisation."""
+
+from __future__ import annotations
+
+import bpy
+import cv2
+import numpy as np
+
+
+def srgb_to_linear(c) -> tuple[float, ...]:
+    """Linear values of sRGB-encoded colour components in [0, 1]."""
+    c = np.asarray(c, dtype=float)
+    return tuple(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
+
+
+def principled(name: str, color, roughness: float = 0.5, specular: float = 0.5, metallic: float = 0.0):
+    """A Principled BSDF material of linear `color`; returns (material, its node tree, the BSDF node)."""
+    mat = bpy.data.materials.new(name)  # Blender 5 materials always have a node tree
+    tree = mat.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    bsdf.inputs["Specular IOR Level"].default_value = specular
+    bsdf.inputs["Metallic"].default_value = metallic
+    return mat, tree, bsdf
+
+
+def assign(obj: bpy.types.Object, mat: bpy.types.Material) -> None:
+    """Give `obj` the single material `mat`."""
+    obj.data.materials.clear()
+    obj.data.materials.append(mat)
+
+
+def image(name: str, rgb: np.ndarray) -> bpy.types.Image:
+    """A packed-in-memory sRGB image from an HxWx3 (or HxW) uint8 array, row 0 at the top."""
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[:, :, None], 3, axis=2)
+    h, w = rgb.shape[:2]
+    img = bpy.data.images.new(name, w, h, alpha=False)
+    rgba = np.concatenate([rgb, np.full((h, w, 1), 255, np.uint8)], axis=2)[::-1]
+    img.pixels.foreach_set((rgba.astype(np.float32) / 255).ravel())
+    img.pack()
+    return img
+
+
+def textured(name: str, img: bpy.types.Image, roughness: float = 0.5, specular: float = 0.5,
+             interpolation: str = "Linear", coords: str = "UV", scale: float = 1.0) -> bpy.types.Material:
+    """A material whose base colour is `img`, mapped by UV (or by object coordinates times `scale`, repeated)."""
+    mat, tree, bsdf = principled(name, (1.0, 1.0, 1.0), roughness, specular)
+    tex = tree.nodes.new("ShaderNodeTexImage")
+    tex.image = img
+    tex.interpolation = interpolation
+    tex.extension = "EXTEND" if coords == "UV" else "REPEAT"
+    if coords != "UV":
+        coord, mapping = tree.nodes.new("ShaderNodeTexCoord"), tree.nodes.new("ShaderNodeMapping")
+        mapping.inputs["Scale"].default_value = (scale, scale, scale)
+        tree.links.new(coord.outputs["Object"], mapping.inputs["Vector"])
+        tree.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+    tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
+def pattern(name: str, kind: str, color_a, color_b, scale: float, roughness: float, specular: float = 0.5):
+    """A procedural surface between two linear colours: noise, voronoi, wave, magic, checker or brick."""
+    mat, tree, bsdf = principled(name, color_a, roughness=roughness, specular=specular)
+    nodes, links = tree.nodes, tree.links
+    coord = nodes.new("ShaderNodeTexCoord")
+    tex = nodes.new(PATTERNS[kind])
+    tex.inputs["Scale"].default_value = scale
+    links.new(coord.outputs["Object"], tex.inputs["Vector"])
+    if kind in ("checker", "brick"):
+        tex.inputs["Color1"].default_value = (*color_a, 1.0)
+        tex.inputs["Color2"].default_value = (*color_b, 1.0)
+        links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    else:
+        mix = nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        mix.inputs["A"].default_value = (*color_a, 1.0)
+        mix.inputs["B"].default_value = (*color_b, 1.0)
+        links.new(tex.outputs["Distance" if kind == "voronoi" else "Fac"], mix.inputs["Factor"])
+        links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
+    return mat, tree, bsdf
+
+
+PATTERNS = {"noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi", "wave": "ShaderNodeTexWave",
+            "magic": "ShaderNodeTexMagic", "checker": "ShaderNodeTexChecker", "brick": "ShaderNodeTexBrick"}
+"""Blender's procedural textures used by `pattern`."""
+
+
+def random_color(rng: np.random.Generator) -> tuple[float, ...]:
+    """A random linear colour, saturated or grey alike."""
+    hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0, 255), rng.uniform(20, 255)]]])
+    return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255)
+
+
+def random_image(rng: np.random.Generator, size: int = 256) -> np.ndarray:
+    """A random picture made on the fly: coloured noise blobs with shapes and strokes over them."""
+    low = rng.integers(0, 256, (rng.integers(2, 9), rng.integers(2, 9), 3), dtype=np.uint8)
+    img = cv2.resize(low, (size, size), interpolation=cv2.INTER_CUBIC)
+    for _ in range(rng.integers(3, 15)):
+        color = tuple(int(c) for c in rng.integers(0, 256, 3))
+        x, y = (int(v) for v in rng.integers(0, size, 2))
+        r = int(rng.integers(4, size // 4))
+        if rng.random() < 0.4:
+            cv2.circle(img, (x, y), r, color, -1, cv2.LINE_AA)
+        elif rng.random() < 0.6:
+            cv2.rectangle(img, (x, y), (x + r, y + r // 2), color, -1)
+        else:
+            x2, y2 = (int(v) for v in rng.integers(0, size, 2))
+            cv2.line(img, (x, y), (x2, y2), color, int(rng.integers(1, 6)), cv2.LINE_AA)
+    return img
+
+
+def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
+    """A random surface: plain, one of the procedural patterns, or a random image repeated over it."""
+    roughness, specular = rng.uniform(0.1, 1.0), rng.uniform(0.1, 0.8)
+    choice = rng.integers(0, len(PATTERNS) + 2)
+    if choice == len(PATTERNS):
+        return principled(name, random_color(rng), roughness, specular, metallic=float(rng.random() < 0.15))[0]
+    if choice == len(PATTERNS) + 1:
+        return textured(name, image(name, random_image(rng)), roughness, specular, coords="Object",
+                        scale=rng.uniform(1.0, 12.0))
+    kind = list(PATTERNS)[choice]
+    return pattern(name, kind, random_color(rng), random_color(rng), rng.uniform(2.0, 40.0), roughness, specular)[0]

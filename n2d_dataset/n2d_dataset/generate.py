@@ -1,0 +1,105 @@
+"""The dataset stage: model directories -> a rendered, annotated dataset directory (BOP + DOPE).
+
+Frames are split across `workers` render processes (frame i goes to worker i mod K); each writes its
+frames straight into `<out>.partial`. Progress, ETA and cancel cover all workers. A run that stops
+(Ctrl-C, cancel, crash) keeps every finished frame; the same command resumes with the missing ones.
+At the end the per-frame records become BOP's chunk files, the models and camera.json are written,
+a contact sheet is drawn from the written annotations, and the directory is published complete.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+from n2d_common.config import to_dict
+from n2d_common.contracts import stage_output
+from n2d_common.errors import Cancelled, N2DError
+from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_common.worker import run_in_worker
+from n2d_dataset import writer
+from n2d_dataset.config import DatasetConfig
+from n2d_dataset.models import CUBOID_ORDER, CUBOID_SIGNS, load_models
+from n2d_dataset.sheet import write_contact_sheet
+
+
+def _render(**kwargs) -> dict:
+    # Imported here, in the worker process only: bpy must never be imported into the caller's process
+    # (it holds global state, and a spawned child would inherit the sys.path entries it adds).
+    from n2d_dataset.render_worker import render_frames
+
+    return render_frames(**kwargs)
+
+
+def _job_config(cfg: DatasetConfig) -> dict:
+    """The config that identifies a job (the worker count does not change what is rendered)."""
+    data = to_dict(cfg)
+    data.pop("workers")
+    return data
+
+
+def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: DatasetConfig, *, overwrite: bool = False,
+                     progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
+    """Render `cfg.frames` annotated frames of the models into the dataset directory `out`; returns a summary."""
+    models = load_models(model_dirs)
+    cancel = cancel or threading.Event()
+    out = Path(out).absolute()
+    t_start = time.perf_counter()
+    job = _job_config(cfg) | {"models": [str(m.directory) for m in models]}
+    with stage_output(out, "dataset", overwrite=overwrite, config=job) as stage:
+        root = stage.path
+        todo = sorted(set(range(cfg.frames)) - writer.done_frames(root))
+        done = cfg.frames - len(todo)
+        eta, lock, errors = Eta(), threading.Lock(), []
+        counts = {"done": done}
+
+        def report(_p: Progress) -> None:
+            with lock:
+                counts["done"] += 1
+                f = counts["done"] / cfg.frames
+                progress(Progress(f, "rendering", eta(f), f"{counts['done']}/{cfg.frames} frames",
+                                  {"frames_done": counts["done"], "frames_total": cfg.frames}))
+
+        def work(frames: list[int]) -> None:
+            try:
+                run_in_worker(_render, {"model_dirs": [str(m.directory) for m in models], "root": str(root),
+                                              "config": to_dict(cfg), "frames": frames},
+                              progress=report, cancel=cancel)
+            except N2DError as exc:
+                errors.append(exc)
+                cancel.set()  # one worker failing stops the others; their frames are kept
+
+        progress(Progress(done / cfg.frames, "rendering", -1.0, f"{done}/{cfg.frames} frames (resumed)" if done else
+                          "starting render workers", {"frames_done": done, "frames_total": cfg.frames}))
+        shards = [todo[k::cfg.workers] for k in range(cfg.workers)]
+        threads = [threading.Thread(target=work, args=(s,), daemon=True) for s in shards if s]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            cancelled = [e for e in errors if isinstance(e, Cancelled)]
+            raise (errors[0] if len(cancelled) < len(errors) else Cancelled(
+                f"cancelled with {len(writer.done_frames(root))} of {cfg.frames} frames done",
+                "re-run the same command to resume"))
+        progress(Progress(1.0, "writing", 0.0, "chunk files, models, contact sheet",
+                          {"frames_done": cfg.frames, "frames_total": cfg.frames}))
+        totals = writer.assemble(root, cfg.frames, cfg.chunk_size)
+        writer.write_models(root, models)
+        writer.write_camera(root, cfg.camera.K(), cfg.camera.width, cfg.camera.height)
+        if cfg.annotate:
+            write_contact_sheet(root, cfg.frames, cfg.chunk_size, cfg.render.rgb_format, seed=cfg.seed)
+        summary = {"frames": cfg.frames, "instances": totals["instances"], "resumed_frames": done,
+                   "wall_s": round(time.perf_counter() - t_start, 2), "phase_seconds": totals["seconds"],
+                   "models": {m.name: m.obj_id for m in models}}
+        stage.finish(config=to_dict(cfg), inputs={m.name: m.directory for m in models}, extra={
+            "layout": "BOP train_pbr chunks; DOPE JSON next to each rgb image",
+            "units": {"bop": "mm", "dope": "cm", "depth_scale_mm": writer.DEPTH_SCALE},
+            "camera_frame": "OpenCV (x right, y down, z forward)",
+            "cuboid_order": list(CUBOID_ORDER),
+            "cuboid_signs": CUBOID_SIGNS.astype(int).tolist(),
+            "cuboids_m": {m.name: {"center": (m.min_m + m.size_m / 2).tolist(), "size": m.size_m.tolist()}
+                          for m in models},
+            "annotated": cfg.annotate, **summary})
+    return summary

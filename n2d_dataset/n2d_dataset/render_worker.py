@@ -1,0 +1,125 @@
+"""A render worker: one bpy process rendering its share of a dataset's frames into the dataset directory.
+
+`render_frames` runs in its own process (through `n2d_common.worker.run_in_worker`): it loads the models
+into Blender once, then per frame builds a random scene, samples a camera until the target is visible
+enough (checked on the label render), renders the image, annotates and writes the frame. A frame's
+randomness comes only from (seed, frame), so any worker renders it the same way.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from n2d_common.config import from_dict
+from n2d_common.errors import Cancelled
+from n2d_common.frames import inv_T, project
+from n2d_common.progress import Progress, ProgressFn
+from n2d_dataset import writer
+from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
+from n2d_dataset.bl import renderer
+from n2d_dataset.bl.camera import set_pose
+from n2d_dataset.config import DatasetConfig
+from n2d_dataset.models import load_models
+from n2d_dataset.poses import sample_camera
+from n2d_dataset.scene import Instance, SceneBuilder
+
+
+def _in_view(cfg: DatasetConfig, T_world_cam: np.ndarray, focus: Instance) -> bool:
+    """Whether the focus object's centre projects into the image, in front of the camera."""
+    T = inv_T(T_world_cam) @ focus.T_world_obj()
+    (u, v), = project(cfg.camera.K(), T, np.zeros((1, 3)))
+    return T[2, 3] > 0 and 0 <= u < cfg.camera.width and 0 <= v < cfg.camera.height
+
+
+def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, cam: bpy.types.Object, focus: Instance) -> tuple:
+    """Sample camera poses until the focus target is visible enough; returns (T_world_cam, labels or None)."""
+    c = cfg.camera
+    best = (-1.0, None, None)
+    for _ in range(c.max_tries):
+        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg,
+                                    c.look_at_jitter_m, c.roll_deg)
+        if not _in_view(cfg, T_world_cam, focus):
+            continue
+        set_pose(cam, T_world_cam)
+        if not cfg.annotate:
+            return T_world_cam, None
+        with renderer.LabelRender():
+            labels = renderer.render()
+        a = annotate(focus.model, focus.index, inv_T(T_world_cam) @ focus.T_world_obj(), c.K(), labels["index"],
+                     labels["depth"])
+        if a.info["visib_fract"] > best[0]:
+            best = (a.info["visib_fract"], T_world_cam, labels)
+        if best[0] >= c.min_visible_fraction:
+            break
+    if best[1] is None:  # never in view: fall back to looking straight at it
+        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg, 0.0, 0.0)
+        set_pose(cam, T_world_cam)
+        return T_world_cam, None
+    set_pose(cam, best[1])
+    return best[1], best[2]
+
+
+def _rss_mb() -> float:
+    """Resident memory of this process, MiB (recorded per frame: it must stay flat)."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _render_frame(cfg: DatasetConfig, builder: SceneBuilder, root: Path, frame: int) -> None:
+    """Build, render, annotate and write one frame (its record last)."""
+    K, w, h, r = cfg.camera.K(), cfg.camera.width, cfg.camera.height, cfg.render
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([cfg.seed, frame])
+    instances, focus, in_hand = builder.build(rng)
+    bpy.context.scene.cycles.seed = int(rng.integers(2 ** 31))
+    t1 = time.perf_counter()
+    T_world_cam, labels = _choose_camera(cfg, rng, builder.camera, focus)
+    if cfg.annotate and labels is None:
+        with renderer.LabelRender():
+            labels = renderer.render()
+    t2 = time.perf_counter()
+    linear = renderer.render()["linear"]
+    rgb = renderer.to_srgb8(linear, renderer.auto_exposure(linear, rng.uniform(0.1, 0.3)))
+    t3 = time.perf_counter()
+    T_cam_world = inv_T(T_world_cam)
+    record = {"frame": frame, "in_hand": in_hand, "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}
+    extra = {}
+    if cfg.annotate:
+        annotations = [annotate(i.model, i.index, T_cam_world @ i.T_world_obj(), K, labels["index"], labels["depth"])
+                       for i in instances]
+        _, im = writer.frame_location(frame, cfg.chunk_size)
+        extra = {"depth_m": labels["depth"], "annotations": annotations,
+                 "dope": dope_frame(annotations, K, w, h, writer.rgb_name(im, r.rgb_format), labels["index"],
+                                    labels["depth"])}
+        record |= {"scene_gt": [bop_gt(a) for a in annotations], "scene_gt_info": [a.info for a in annotations]}
+    t4 = time.perf_counter()
+    record["rss_mb"] = round(_rss_mb(), 1)
+    record["seconds"] = {"compose": t1 - t0, "labels": t2 - t1, "render": t3 - t2, "annotate": t4 - t3}
+    writer.write_frame(root, frame, cfg.chunk_size, rgb, r.rgb_format, r.jpeg_quality, record, **extra)
+
+
+def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
+                  cancel: threading.Event) -> dict:
+    """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
+    cfg = from_dict(DatasetConfig, config)
+    builder = SceneBuilder(load_models(model_dirs), cfg)
+    shm = "/dev/shm" if Path("/dev/shm").is_dir() else None  # the EXRs never need to touch a disk
+    with tempfile.TemporaryDirectory(prefix="n2d_dataset_", dir=shm) as tmp:
+        r = cfg.render
+        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.workers)
+        device = renderer.setup(Path(tmp) / "frame.exr", r.samples, r.denoiser, r.max_bounces, r.device, threads)
+        for n, frame in enumerate(frames):
+            if cancel.is_set():
+                raise Cancelled(f"stopped after {n} of this worker's {len(frames)} frames",
+                                "re-run the same command to resume")
+            t0 = time.perf_counter()
+            _render_frame(cfg, builder, Path(root), frame)
+            progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
+                              info={"frame": frame, "seconds": time.perf_counter() - t0, "device": device}))
+    return {"frames": len(frames), "device": device}

@@ -1,0 +1,135 @@
+"""One random scene per frame, composed from the bpy layer: floor and walls, the target models, distractors,
+lights and sky, dropped by physics or held in a gripper proxy.
+
+World frame: Z up, floor at z = 0. Target instances get Object Index 1..n (their label in the index
+pass); everything else keeps 0. Runs inside a render worker process only (imports bpy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from n2d_common.frames import make_T
+from n2d_dataset.bl import lighting, materials, objects, physics
+from n2d_dataset.bl.camera import make_camera, world_pose
+from n2d_dataset.config import DatasetConfig
+from n2d_dataset.models import Model
+from n2d_dataset.poses import random_rotation
+
+FLOOR_HALF_M = 4.0
+"""Half size of the floor square, metres."""
+
+
+@dataclass
+class Instance:
+    """A target model placed in the scene."""
+
+    model: Model
+    """Which model it shows."""
+    index: int
+    """Its Object Index pass value (1..n)."""
+    obj: bpy.types.Object
+    """The Blender object (its matrix_world is T_world_obj once the scene is built)."""
+
+    def T_world_obj(self) -> np.ndarray:
+        return world_pose(self.obj)
+
+
+class SceneBuilder:
+    """Loads the models once, then builds a new random scene per frame on demand."""
+
+    def __init__(self, models: list[Model], cfg: DatasetConfig):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        self.cfg = cfg
+        self.models = models
+        self.meshes = {m.name: objects.load_model(m.directory, m.name) for m in models}
+        self.camera = make_camera(cfg.camera.width, cfg.camera.height, cfg.camera.focal_px)
+
+    def build(self, rng: np.random.Generator) -> tuple[list[Instance], Instance, bool]:
+        """Clear the last scene and compose a new one; returns the target instances, the one the camera
+        looks at, and whether the frame is in-hand."""
+        objects.clear_scene(keep=(self.camera,))
+        sc = self.cfg.scene
+        floor = self._room(rng)
+        instances = []
+        for model in self.models:
+            for _ in range(rng.integers(sc.instances_per_model[0], sc.instances_per_model[1] + 1)):
+                obj = objects.instance(self.meshes[model.name], f"{model.name}_{len(instances)}")
+                obj.pass_index = len(instances) + 1
+                instances.append(Instance(model, len(instances) + 1, obj))
+        if not instances:  # every range allowed zero copies: show one of the first model
+            obj = objects.instance(self.meshes[self.models[0].name], f"{self.models[0].name}_0")
+            obj.pass_index = 1
+            instances.append(Instance(self.models[0], 1, obj))
+        distractors = [self._distractor(rng, i) for i in range(rng.integers(sc.distractors[0], sc.distractors[1] + 1))]
+        in_hand = bool(rng.random() < sc.in_hand)
+        held = instances[rng.integers(len(instances))] if in_hand else None
+        resting = [i.obj for i in instances if i is not held] + distractors
+        self._scatter(rng, resting)
+        if sc.physics and resting:
+            physics.drop(resting, [floor])
+        if held is not None:
+            self._hold(rng, held)
+        focus = instances[rng.integers(len(instances))] if held is None else held
+        lighting.random_lights(rng, int(rng.integers(sc.lights[0], sc.lights[1] + 1)), sc.light_power_w,
+                               focus.T_world_obj()[:3, 3])
+        lighting.gradient_world(rng, float(rng.uniform(*sc.world_strength)))
+        bpy.context.view_layer.update()
+        return instances, focus, in_hand
+
+    def _room(self, rng: np.random.Generator) -> bpy.types.Object:
+        h = FLOOR_HALF_M
+        floor = objects.mesh_object("floor", [(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [(0, 1, 2, 3)])
+        materials.assign(floor, materials.random_material(rng, "floor"))
+        if rng.random() < self.cfg.scene.walls:
+            d = rng.uniform(0.5, 1.5)
+            for i, (a, b) in enumerate((((-d, -h), (-d, h)), ((-h, -d), (h, -d)))):
+                (x0, y0), (x1, y1) = a, b
+                wall = objects.mesh_object(f"wall{i}", [(x0, y0, 0), (x1, y1, 0), (x1, y1, 3), (x0, y0, 3)],
+                                           [(0, 1, 2, 3)])
+                materials.assign(wall, materials.random_material(rng, f"wall{i}"))
+        return floor
+
+    def _distractor(self, rng: np.random.Generator, i: int) -> bpy.types.Object:
+        lo, hi = self.cfg.scene.distractor_size_m
+        size = rng.uniform(lo, hi) * rng.uniform(0.3, 1.0, 3)
+        size[rng.integers(3)] = max(size.max(), lo)
+        obj = objects.primitive(f"distractor{i}", str(rng.choice(objects.PRIMITIVES)), size)
+        materials.assign(obj, materials.random_material(rng, f"distractor{i}"))
+        return obj
+
+    def _scatter(self, rng: np.random.Generator, objs: list[bpy.types.Object]) -> None:
+        """Random orientations over the spread square, stacked in height so nothing starts interpenetrating."""
+        spread = self.cfg.scene.spread_m
+        z = 0.0
+        for obj in objs:
+            radius = max(obj.dimensions) / 2
+            z += radius + 0.005
+            T = make_T(random_rotation(rng), (*rng.uniform(-spread, spread, 2), z))
+            obj.matrix_world = Matrix(T.tolist())
+            z += radius
+
+    def _hold(self, rng: np.random.Generator, held: Instance) -> None:
+        """Put `held` in the air at a random orientation, pinched across its x extent by a two-finger gripper
+        (palm, fingers and a forearm: occluders with a random plastic or metal finish)."""
+        T = make_T(random_rotation(rng), (*rng.uniform(-0.1, 0.1, 2), rng.uniform(0.2, 0.45)))
+        held.obj.matrix_world = Matrix(T.tolist())
+        hx, hy, hz = (d / 2 for d in held.model.size_m)
+        t, w = 0.012, min(0.03, 2 * hy)
+        reach = hz + 0.03
+        parts = [((t, w, reach), (-(hx + t / 2), 0.0, reach / 2)),              # fingers, from the palm down
+                 ((t, w, reach), (hx + t / 2, 0.0, reach / 2)),
+                 ((2 * hx + 2 * t + 0.02, 0.05, 0.025), (0.0, 0.0, reach + 0.0125))]  # palm
+        finish = materials.principled("gripper", materials.random_color(rng) if rng.random() < 0.5 else (0.02,) * 3,
+                                      roughness=rng.uniform(0.2, 0.7), metallic=float(rng.random() < 0.4))[0]
+        for i, (size, centre) in enumerate(parts):
+            part = objects.box(f"gripper{i}", size)
+            part.matrix_world = Matrix((T @ make_T(np.eye(3), centre)).tolist())
+            materials.assign(part, finish)
+        arm = objects.cylinder("forearm", 0.03, reach + 0.025, reach + 0.5, n=24)
+        arm.matrix_world = Matrix(T.tolist())
+        materials.assign(arm, finish)

@@ -1,0 +1,114 @@
+"""Dataset writers: per-frame files in BOP's train_pbr layout with DOPE JSON next to each image, then the
+chunk-level JSON files, the models and the camera, assembled from the per-frame records.
+
+Layout (BOP, https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
+  camera.json                        intrinsics of every frame (one fixed camera), depth_scale
+  models/models_info.json, obj_NNNNNN.ply (mm), <name>/ (the n2d model, metres)
+  train_pbr/CCCCCC/rgb/IIIIII.jpg    (or .png) and IIIIII.json, the DOPE annotation of that image
+  train_pbr/CCCCCC/depth/IIIIII.png  uint16, depth_mm = value * depth_scale (0.1 mm steps, 0: no surface)
+  train_pbr/CCCCCC/mask/IIIIII_KKKKKK.png, mask_visib/...  full and visible silhouette of instance K
+  train_pbr/CCCCCC/scene_gt.json, scene_camera.json, scene_gt_info.json
+A frame's files are written first and its record (records/FFFFFF.json) last, atomically: a frame without
+a record is re-rendered on resume. The records become the chunk JSON files at the end, then go.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from n2d_common.contracts import atomic_write_bytes, atomic_write_json
+from n2d_dataset.annotate import Annotation
+from n2d_dataset.models import Model
+
+DEPTH_SCALE = 0.1
+"""BOP depth_scale: millimetres per unit of the uint16 depth PNGs (0.1 mm steps, up to 6.5 m)."""
+RECORDS = "records"
+
+
+def frame_location(frame: int, chunk_size: int) -> tuple[Path, int]:
+    """(chunk directory relative to the dataset root, image id in the chunk) of frame number `frame`."""
+    return Path("train_pbr") / f"{frame // chunk_size:06d}", frame % chunk_size
+
+
+def _encode(path: Path, img: np.ndarray, params=()) -> None:
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(path.suffix, img, list(params))
+    if not ok:
+        raise OSError(f"could not encode {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def rgb_name(im_id: int, fmt: str) -> str:
+    return f"{im_id:06d}.{fmt}"
+
+
+def write_frame(root: Path, frame: int, chunk_size: int, rgb: np.ndarray, fmt: str, quality: int,
+                record: dict, depth_m: np.ndarray | None = None, annotations: list[Annotation] = (),
+                dope: dict | None = None) -> None:
+    """Write one frame's image (and, when annotated, depth, masks and DOPE JSON), then its record."""
+    chunk, im = frame_location(frame, chunk_size)
+    base = root / chunk
+    _encode(base / "rgb" / rgb_name(im, fmt), rgb, (cv2.IMWRITE_JPEG_QUALITY, quality) if fmt == "jpg" else ())
+    if depth_m is not None:
+        depth = np.where(np.isfinite(depth_m), np.round(depth_m * 1000.0 / DEPTH_SCALE), 0)
+        _encode(base / "depth" / f"{im:06d}.png", np.where(depth > 65535, 0, depth).astype(np.uint16))
+    for k, a in enumerate(annotations):
+        _encode(base / "mask" / f"{im:06d}_{k:06d}.png", a.mask.astype(np.uint8) * 255)
+        _encode(base / "mask_visib" / f"{im:06d}_{k:06d}.png", a.mask_visib.astype(np.uint8) * 255)
+    if dope is not None:
+        atomic_write_json(base / "rgb" / f"{im:06d}.json", dope)
+    atomic_write_json(root / RECORDS / f"{frame:06d}.json", record)
+
+
+def done_frames(root: Path) -> set[int]:
+    """Frames whose record exists (finished, all files written)."""
+    return {int(p.stem) for p in (root / RECORDS).glob("*.json")} if (root / RECORDS).is_dir() else set()
+
+
+def assemble(root: Path, frames: int, chunk_size: int) -> dict:
+    """Turn the per-frame records into each chunk's scene_gt/scene_camera/scene_gt_info.json; returns totals."""
+    chunks: dict[Path, dict[str, dict]] = {}
+    instances, seconds = 0, {}
+    for frame in range(frames):
+        record = json.loads((root / RECORDS / f"{frame:06d}.json").read_text())
+        chunk, im = frame_location(frame, chunk_size)
+        files = chunks.setdefault(chunk, {"scene_gt": {}, "scene_camera": {}, "scene_gt_info": {}})
+        for key in files:
+            if key in record:
+                files[key][str(im)] = record[key]
+        instances += len(record.get("scene_gt", []))
+        for phase, s in record.get("seconds", {}).items():
+            seconds[phase] = seconds.get(phase, 0.0) + s
+    for chunk, files in chunks.items():
+        for key, content in files.items():
+            if content:
+                atomic_write_json(root / chunk / f"{key}.json", content)
+    shutil.rmtree(root / RECORDS)
+    return {"instances": instances, "seconds": {k: round(v, 2) for k, v in seconds.items()}}
+
+
+def write_models(root: Path, models: list[Model]) -> None:
+    """models/: BOP models_info.json and obj_NNNNNN.ply (millimetres), and each n2d model as given (metres)."""
+    info = {}
+    for m in models:
+        mesh = m.mesh
+        ply = trimesh.Trimesh(mesh.vertices * 1000.0, mesh.faces, process=False).export(file_type="ply")
+        atomic_write_bytes(root / "models" / f"obj_{m.obj_id:06d}.ply", ply)
+        info[str(m.obj_id)] = next(iter(json.loads((m.directory / "models_info.json").read_text()).values()))
+        shutil.copytree(m.directory, root / "models" / m.name, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("*.partial", "preview.png", "report.json"))
+    atomic_write_json(root / "models" / "models_info.json", info)
+
+
+def write_camera(root: Path, K: np.ndarray, width: int, height: int) -> None:
+    """BOP camera.json of the dataset's one camera."""
+    atomic_write_json(root / "camera.json", {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "fx": float(K[0, 0]),
+                                             "fy": float(K[1, 1]), "width": width, "height": height,
+                                             "depth_scale": DEPTH_SCALE})
