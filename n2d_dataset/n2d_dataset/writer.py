@@ -73,9 +73,10 @@ def done_frames(root: Path) -> set[int]:
 
 
 def assemble(root: Path, frames: int, chunk_size: int) -> dict:
-    """Turn the per-frame records into each chunk's scene_gt/scene_camera/scene_gt_info.json; returns totals."""
+    """Turn the per-frame records into each chunk's scene_gt/scene_camera/scene_gt_info.json; returns totals
+    (instances, seconds per phase, render worker memory at the first and last frame)."""
     chunks: dict[Path, dict[str, dict]] = {}
-    instances, seconds = 0, {}
+    instances, seconds, rss = 0, {}, []
     for frame in range(frames):
         record = json.loads((root / RECORDS / f"{frame:06d}.json").read_text())
         chunk, im = frame_location(frame, chunk_size)
@@ -84,6 +85,7 @@ def assemble(root: Path, frames: int, chunk_size: int) -> dict:
             if key in record:
                 files[key][str(im)] = record[key]
         instances += len(record.get("scene_gt", []))
+        rss.append(record.get("rss_mb", 0.0))
         for phase, s in record.get("seconds", {}).items():
             seconds[phase] = seconds.get(phase, 0.0) + s
     for chunk, files in chunks.items():
@@ -91,7 +93,8 @@ def assemble(root: Path, frames: int, chunk_size: int) -> dict:
             if content:
                 atomic_write_json(root / chunk / f"{key}.json", content)
     shutil.rmtree(root / RECORDS)
-    return {"instances": instances, "seconds": {k: round(v, 2) for k, v in seconds.items()}}
+    return {"instances": instances, "seconds": {k: round(v, 2) for k, v in seconds.items()},
+            "worker_rss_mb": {"first_frame": rss[0], "last_frame": rss[-1], "max": max(rss)}}
 
 
 def write_models(root: Path, models: list[Model]) -> None:

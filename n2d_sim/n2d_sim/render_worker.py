@@ -56,11 +56,12 @@ from pathlib import Path
 import bpy
 import cv2
 import numpy as np
-import OpenEXR
-from mathutils import Matrix, Vector
+from mathutils import Vector
 
 from n2d_capture.board import T_plate_board, board_image
 from n2d_common.config import from_dict
+from n2d_dataset.bl import materials, objects, renderer
+from n2d_dataset.bl.camera import make_camera, set_pose
 from n2d_sim.world import SimWorldConfig, T_turntable_cam, object_dir, object_info
 
 OBJECT_INDEX = 1
@@ -68,88 +69,12 @@ BOARD_PX_PER_SQUARE = 128
 
 
 # ---------------------------------------------------------------------------------------------
-# Small builders on the data API (operators need a UI context; the data API does not)
-
-
-def _mesh_object(name: str, verts, faces, uvs=None, parent=None) -> bpy.types.Object:
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata([tuple(map(float, v)) for v in verts], [], [tuple(map(int, f)) for f in faces])
-    if uvs is not None:
-        layer = mesh.uv_layers.new(name="UVMap")
-        flat = [uvs[i] for f in faces for i in f]
-        layer.data.foreach_set("uv", np.asarray(flat, dtype=np.float32).ravel())
-    mesh.validate()
-    obj = bpy.data.objects.new(name, mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    obj.parent = parent
-    return obj
-
-
-def _box(name, size, location, rot_z=0.0, parent=None) -> bpy.types.Object:
-    sx, sy, sz = (s / 2 for s in size)
-    verts = [(x, y, z) for z in (-sz, sz) for y in (-sy, sy) for x in (-sx, sx)]
-    faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-    obj = _mesh_object(name, verts, faces, parent=parent)
-    obj.location = location
-    obj.rotation_euler[2] = rot_z
-    return obj
-
-
-def _cylinder(name, radius, z0, z1, location=(0.0, 0.0, 0.0), n=64, parent=None) -> bpy.types.Object:
-    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], axis=1)
-    verts = [(x, y, z0) for x, y in ring] + [(x, y, z1) for x, y in ring] + [(0, 0, z0), (0, 0, z1)]
-    faces = [(i, (i + 1) % n, n + (i + 1) % n, n + i) for i in range(n)]
-    faces += [((i + 1) % n, i, 2 * n) for i in range(n)]
-    faces += [(n + i, n + (i + 1) % n, 2 * n + 1) for i in range(n)]
-    obj = _mesh_object(name, verts, faces, parent=parent)
-    obj.data.polygons.foreach_set("use_smooth", [True] * n + [False] * (2 * n))  # smooth side, flat caps
-    obj.location = location
-    return obj
-
-
-def _material(name, color, roughness=0.5, specular=0.5, metallic=0.0):
-    """A Principled BSDF material; returns (material, its node tree, the BSDF node)."""
-    mat = bpy.data.materials.new(name)  # Blender 5 materials always have a node tree
-    tree = mat.node_tree
-    bsdf = tree.nodes["Principled BSDF"]
-    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
-    bsdf.inputs["Roughness"].default_value = roughness
-    bsdf.inputs["Specular IOR Level"].default_value = specular
-    bsdf.inputs["Metallic"].default_value = metallic
-    return mat, tree, bsdf
-
-
-def _assign(obj, mat):
-    obj.data.materials.clear()
-    obj.data.materials.append(mat)
-
-
-def _image(name: str, rgb: np.ndarray) -> bpy.types.Image:
-    """A packed-in-memory sRGB image from an HxWx3 (or HxW) uint8 array, row 0 at the top."""
-    if rgb.ndim == 2:
-        rgb = np.repeat(rgb[:, :, None], 3, axis=2)
-    h, w = rgb.shape[:2]
-    img = bpy.data.images.new(name, w, h, alpha=False)
-    rgba = np.concatenate([rgb, np.full((h, w, 1), 255, np.uint8)], axis=2)[::-1]
-    img.pixels.foreach_set((rgba.astype(np.float32) / 255).ravel())
-    img.pack()
-    return img
-
-
-def _textured_material(name, image, roughness=0.5, specular=0.5, interpolation="Linear"):
-    mat, tree, bsdf = _material(name, (1.0, 1.0, 1.0), roughness, specular)
-    tex = tree.nodes.new("ShaderNodeTexImage")
-    tex.image = image
-    tex.interpolation = interpolation
-    tex.extension = "EXTEND"
-    tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
-    return mat
+# Sim-specific materials and lights (the generic builders are n2d_dataset.bl's)
 
 
 def _wood_material(name, base, dark, seed):
     """Procedural wood: bands along x distorted by noise into grain, with a slow colour variation."""
-    mat, tree, bsdf = _material(name, base, roughness=0.45, specular=0.4)
+    mat, tree, bsdf = materials.principled(name, base, roughness=0.45, specular=0.4)
     nodes, links = tree.nodes, tree.links
     coord = nodes.new("ShaderNodeTexCoord")
     mapping = nodes.new("ShaderNodeMapping")
@@ -181,29 +106,6 @@ def _wood_material(name, base, dark, seed):
     return mat
 
 
-def _pattern_material(name, kind, color_a, color_b, scale, roughness):
-    """Procedural distractor surfaces: noise, checker, brick or magic patterns between two colours."""
-    mat, tree, bsdf = _material(name, color_a, roughness=roughness)
-    nodes, links = tree.nodes, tree.links
-    coord = nodes.new("ShaderNodeTexCoord")
-    tex = nodes.new({"noise": "ShaderNodeTexNoise", "checker": "ShaderNodeTexChecker",
-                     "brick": "ShaderNodeTexBrick", "magic": "ShaderNodeTexMagic"}[kind])
-    tex.inputs["Scale"].default_value = scale
-    links.new(coord.outputs["Object"], tex.inputs["Vector"])
-    if kind in ("checker", "brick"):
-        tex.inputs["Color1"].default_value = (*color_a, 1.0)
-        tex.inputs["Color2"].default_value = (*color_b, 1.0)
-        links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
-    else:
-        mix = nodes.new("ShaderNodeMix")
-        mix.data_type = "RGBA"
-        mix.inputs["A"].default_value = (*color_a, 1.0)
-        mix.inputs["B"].default_value = (*color_b, 1.0)
-        links.new(tex.outputs["Fac"], mix.inputs["Factor"])
-        links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
-    return mat
-
-
 def _area_light(name, power_w, size_m, location, parent):
     """A square area light at `location` (in the parent's frame) shining at the plate centre."""
     light = bpy.data.lights.new(name, type="AREA")
@@ -219,11 +121,6 @@ def _area_light(name, power_w, size_m, location, parent):
 
 # ---------------------------------------------------------------------------------------------
 # The scene
-
-
-def _srgb_to_linear(c):
-    c = np.asarray(c, dtype=float)
-    return tuple(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
 
 
 def _poster() -> np.ndarray:
@@ -268,54 +165,10 @@ class Scene:
 
     def _setup_render(self) -> str:
         cfg, scene = self.cfg, self.scene
-        scene.render.engine = "CYCLES"
-        device = "CPU"
-        if cfg.device != "cpu":
-            prefs = bpy.context.preferences.addons["cycles"].preferences
-            for backend in ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL"):
-                try:
-                    prefs.compute_device_type = backend
-                except TypeError:
-                    continue
-                prefs.get_devices()
-                gpus = [d for d in prefs.devices if d.type == backend]
-                if gpus:
-                    for d in prefs.devices:
-                        d.use = d.type == backend
-                    device = "GPU"
-                    break
-            if device == "CPU" and cfg.device == "gpu":
-                raise RuntimeError("device: gpu was asked for, but Cycles finds no GPU")
-        scene.cycles.device = device
-        scene.cycles.samples = cfg.samples
-        scene.cycles.use_adaptive_sampling = False
-        scene.cycles.use_denoising = cfg.denoiser == "oidn"
-        scene.cycles.denoiser = "OPENIMAGEDENOISE"
-        scene.cycles.denoising_input_passes = "RGB_ALBEDO_NORMAL"
-        scene.cycles.denoising_prefilter = "FAST"
-        scene.cycles.denoising_quality = "FAST"
-        scene.cycles.max_bounces = cfg.max_bounces
-        scene.cycles.diffuse_bounces = scene.cycles.glossy_bounces = cfg.max_bounces
-        scene.cycles.transmission_bounces = scene.cycles.volume_bounces = 0
-        scene.cycles.transparent_max_bounces = 2
-        scene.cycles.caustics_reflective = scene.cycles.caustics_refractive = False
-        scene.cycles.use_auto_tile = False
-        scene.render.threads_mode = "FIXED"
-        scene.render.threads = cfg.threads or len(os.sched_getaffinity(0))
-        scene.render.use_persistent_data = True
+        device = renderer.setup(self.exr, cfg.samples, cfg.denoiser, cfg.max_bounces, cfg.device, cfg.threads)
         scene.render.resolution_x, scene.render.resolution_y = cfg.width, cfg.height
         scene.render.resolution_percentage = 100
         scene.render.film_transparent = False
-        scene.view_settings.view_transform = "Standard"
-        settings = scene.render.image_settings
-        settings.media_type = "MULTI_LAYER_IMAGE"
-        settings.file_format = "OPEN_EXR_MULTILAYER"
-        settings.color_depth = "32"
-        settings.exr_codec = "NONE"
-        scene.render.filepath = str(self.exr)
-        layer = scene.view_layers[0]
-        layer.use_pass_z = True
-        layer.use_pass_object_index = True
         world = bpy.data.worlds.new("world")
         background = world.node_tree.nodes["Background"]
         background.inputs["Color"].default_value = (0.6, 0.62, 0.65, 1.0)
@@ -326,14 +179,14 @@ class Scene:
     def _turntable(self):
         cfg = self.cfg
         r = cfg.board.plate_diameter_m / 2
-        plate_mat, _, _ = _material("plate", _srgb_to_linear((0.12, 0.12, 0.13)), roughness=0.55,
+        plate_mat, _, _ = materials.principled("plate", materials.srgb_to_linear((0.12, 0.12, 0.13)), roughness=0.55,
                                     specular=0.4)
-        plate = _cylinder("plate", r, -0.0063, -0.0003, parent=self.rig)
-        _assign(plate, plate_mat)
-        base_mat, _, _ = _material("base", _srgb_to_linear((0.2, 0.2, 0.22)), roughness=0.35, specular=0.5,
-                                   metallic=0.6)
-        base = _cylinder("base", 0.8 * r, -cfg.plate_height_m, -0.0063 - 0.001)
-        _assign(base, base_mat)
+        plate = objects.cylinder("plate", r, -0.0063, -0.0003, parent=self.rig)
+        materials.assign(plate, plate_mat)
+        base_mat, _, _ = materials.principled("base", materials.srgb_to_linear((0.2, 0.2, 0.22)), roughness=0.35,
+                                              specular=0.5, metallic=0.6)
+        base = objects.cylinder("base", 0.8 * r, -cfg.plate_height_m, -0.0063 - 0.001)
+        materials.assign(base, base_mat)
 
     def _board(self):
         spec = self.cfg.board
@@ -350,8 +203,8 @@ class Scene:
         T = T_plate_board(spec)
         verts = corners_b @ T[:3, :3].T + T[:3, 3]
         uvs = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)]
-        board = _mesh_object("board", verts, [(0, 1, 2, 3)], uvs=uvs, parent=self.rig)
-        _assign(board, _textured_material("board", _image("board", np.uint8(np.round(sheet))),
+        board = objects.mesh_object("board", verts, [(0, 1, 2, 3)], uvs=uvs, parent=self.rig)
+        materials.assign(board, materials.textured("board", materials.image("board", np.uint8(np.round(sheet))),
                                           roughness=0.55, specular=0.35))
 
     def _object(self):
@@ -369,19 +222,8 @@ class Scene:
         return parts
 
     def _camera(self):
-        cfg = self.cfg
-        cam_data = bpy.data.cameras.new("camera")
-        cam_data.sensor_fit = "HORIZONTAL"
-        cam_data.sensor_width = 36.0
-        cam_data.lens = cfg.focal_px * cam_data.sensor_width / cfg.width
-        cam_data.clip_start, cam_data.clip_end = 0.01, 20.0
-        cam = bpy.data.objects.new("camera", cam_data)
-        self.scene.collection.objects.link(cam)
-        T = T_turntable_cam(cfg)
-        T_bl = T.copy()
-        T_bl[:3, :3] = T[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> Blender's
-        cam.matrix_world = Matrix(T_bl.tolist())
-        self.scene.camera = cam
+        cam = make_camera(self.cfg.width, self.cfg.height, self.cfg.focal_px)
+        set_pose(cam, T_turntable_cam(self.cfg))
 
     def _lights(self):
         cfg = self.cfg
@@ -394,18 +236,18 @@ class Scene:
         rng = np.random.default_rng(cfg.clutter_seed)
         z_table = -cfg.plate_height_m
         room = self.room
-        table = _box("table", (2.4, 1.6, 0.04), (0.0, 0.35, z_table - 0.02), parent=room)
-        _assign(table, _wood_material("wood", _srgb_to_linear((0.72, 0.55, 0.38)),
-                                      _srgb_to_linear((0.5, 0.35, 0.22)), cfg.clutter_seed))
+        table = objects.box("table", (2.4, 1.6, 0.04), (0.0, 0.35, z_table - 0.02), parent=room)
+        materials.assign(table, _wood_material("wood", materials.srgb_to_linear((0.72, 0.55, 0.38)),
+                                      materials.srgb_to_linear((0.5, 0.35, 0.22)), cfg.clutter_seed))
         wall_y = 0.55
-        wall = _box("wall", (3.0, 0.05, 2.0), (0.0, wall_y + 0.025, z_table + 1.0), parent=room)
-        _assign(wall, _pattern_material("wall", "noise", _srgb_to_linear((0.78, 0.77, 0.72)),
-                                        _srgb_to_linear((0.72, 0.71, 0.66)), 40.0, 0.8))
+        wall = objects.box("wall", (3.0, 0.05, 2.0), (0.0, wall_y + 0.025, z_table + 1.0), parent=room)
+        materials.assign(wall, _pattern("wall", "noise", materials.srgb_to_linear((0.78, 0.77, 0.72)),
+                                        materials.srgb_to_linear((0.72, 0.71, 0.66)), 40.0, 0.8))
         corners = [(-0.15, 0, -0.21), (0.15, 0, -0.21), (0.15, 0, 0.21), (-0.15, 0, 0.21)]
-        poster = _mesh_object("poster", corners, [(0, 1, 2, 3)], uvs=[(0, 0), (1, 0), (1, 1), (0, 1)],
+        poster = objects.mesh_object("poster", corners, [(0, 1, 2, 3)], uvs=[(0, 0), (1, 0), (1, 1), (0, 1)],
                               parent=room)
         poster.location = (-0.35 + 0.2 * rng.random(), wall_y - 0.002, z_table + 0.42)
-        _assign(poster, _textured_material("poster", _image("poster", _poster()), roughness=0.4))
+        materials.assign(poster, materials.textured("poster", materials.image("poster", _poster()), roughness=0.4))
         kinds = ("noise", "checker", "brick", "magic")
         static = [table, wall, poster]
         placed: list[tuple[float, float, float]] = []
@@ -424,17 +266,17 @@ class Scene:
             height = rng.uniform(0.05, 0.28)
             hue = rng.random()
             rgb = cv2.cvtColor(np.uint8([[[hue * 180, 150, 200]]]), cv2.COLOR_HSV2RGB)[0, 0] / 255
-            color_a = _srgb_to_linear(rgb)
+            color_a = materials.srgb_to_linear(rgb)
             color_b = tuple(0.3 * c + 0.05 for c in color_a)
-            mat = _pattern_material(f"distractor{i}", kinds[i % len(kinds)], color_a, color_b,
+            mat = _pattern(f"distractor{i}", kinds[i % len(kinds)], color_a, color_b,
                                     rng.uniform(4, 30), rng.uniform(0.2, 0.8))
             if rng.random() < 0.5:
-                obj = _cylinder(f"distractor{i}", radius, z_table, z_table + height, (x, y, 0.0), n=48,
+                obj = objects.cylinder(f"distractor{i}", radius, z_table, z_table + height, (x, y, 0.0), n=48,
                                 parent=room)
             else:
                 size = (1.4 * radius, rng.uniform(0.7, 1.3) * 1.4 * radius, height)
-                obj = _box(f"distractor{i}", size, (x, y, z_table + height / 2), rng.uniform(0, np.pi), room)
-            _assign(obj, mat)
+                obj = objects.box(f"distractor{i}", size, (x, y, z_table + height / 2), rng.uniform(0, np.pi), room)
+            materials.assign(obj, mat)
             static.append(obj)
         return static
 
@@ -449,7 +291,7 @@ class Scene:
         for obj in self.objects:
             obj.hide_render = True
         bpy.ops.render.render(write_still=True)
-        background = read_exr(self.exr)
+        background = _read_exr(self.exr)
         for obj in self.objects:
             obj.hide_render = False
         for obj in self.static:
@@ -469,7 +311,7 @@ class Scene:
         for obj in self.objects:
             obj.hide_render = not object_visible
         bpy.ops.render.render(write_still=True)
-        frame = read_exr(self.exr)
+        frame = _read_exr(self.exr)
         if self.background is not None:
             alpha = frame.pop("alpha")[..., None]
             frame["linear"] = frame["linear"] + (1.0 - alpha) * self.background["linear"]
@@ -478,22 +320,15 @@ class Scene:
         return frame
 
 
-def read_exr(path: Path) -> dict:
-    """Combined (linear RGB and alpha), Depth and Object Index passes of a Cycles multilayer EXR."""
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        # Blender 5 writes each pass as its own part of a multi-part file.
-        ch = {name: c.pixels for part in f.parts for name, c in part.channels.items()}
-    return {"linear": np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"], axis=-1),
-            "alpha": ch["ViewLayer.Combined.A"],
-            "depth": ch["ViewLayer.Depth.Z"].astype(np.float32),
-            "mask": np.round(ch["ViewLayer.Object Index.X"]) == OBJECT_INDEX}
+def _pattern(name, kind, color_a, color_b, scale, roughness):
+    return materials.pattern(name, kind, color_a, color_b, scale, roughness)[0]
 
 
-def to_srgb8(linear: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:
-    """8-bit sRGB (view transform "Standard") of linear RGB after an exposure correction in stops."""
-    linear = np.clip(linear * 2.0 ** exposure_ev, 0.0, 1.0)
-    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
+def _read_exr(path: Path) -> dict:
+    """The render's passes as the sim camera uses them: linear RGB, alpha, depth and the object mask."""
+    frame = renderer.read_exr(path)
+    frame["mask"] = frame.pop("index") == OBJECT_INDEX
+    return frame
 
 
 def serve(conn: Connection) -> None:
@@ -510,7 +345,7 @@ def serve(conn: Connection) -> None:
                 if command == "close":
                     return
                 frame = scene.render(*arg)
-                frame["rgb"] = to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
+                frame["rgb"] = renderer.to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
                 frame.pop("alpha", None)
                 conn.send(("frame", frame))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
