@@ -3,6 +3,7 @@ meshes (mask boundaries, depth, visibility, DOPE vs BOP), reproducibility, resum
 input, and the `n2d dataset` CLI."""
 
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -14,7 +15,7 @@ import pytest
 
 from n2d_common.config import load_config
 from n2d_common.contracts import read_manifest
-from n2d_common.errors import Cancelled, ContractError
+from n2d_common.errors import Cancelled, ConfigError, ContractError
 from n2d_common.frames import project, transform_points
 from n2d_common.images import read_png
 from n2d_dataset.check import check_dataset, frames, pose
@@ -111,14 +112,36 @@ def test_resume_after_cancel_is_reproducible(dataset, tmp_path):
         assert np.abs(a - b).mean() < 1.0
 
 
-def test_bad_input_writes_nothing(tmp_path):
+def _broken_copy(tmp_path: Path, name: str, edit) -> Path:
+    model = tmp_path / name
+    shutil.copytree(MODELS[0], model)
+    obj = model / "mesh.obj"
+    obj.write_text("\n".join(edit(line) for line in obj.read_text().splitlines()) + "\n")
+    return model
+
+
+def test_bad_input_writes_nothing(dataset, tmp_path):
     not_a_model = tmp_path / "photos"
     not_a_model.mkdir()
     with pytest.raises(ContractError, match="no n2d.json"):
         generate_dataset([not_a_model], tmp_path / "ds", small_config())
     with pytest.raises(ContractError, match="no models"):
         generate_dataset([], tmp_path / "ds", small_config())
+    in_mm = _broken_copy(tmp_path, "mm", lambda line: "v " + " ".join(str(1000 * float(v)) for v in line.split()[1:])
+                         if line.startswith("v ") else line)
+    with pytest.raises(ContractError, match="millimetres"):
+        generate_dataset([in_mm], tmp_path / "ds", small_config())
+    no_uv = _broken_copy(tmp_path, "nouv", lambda line: "" if line.startswith("vt ") else
+                         " ".join(c.split("/")[0] for c in line.split()) if line.startswith("f ") else line)
+    with pytest.raises(ContractError, match="texture coordinates"):
+        generate_dataset([no_uv], tmp_path / "ds", small_config())
+    with pytest.raises(ConfigError, match="frames"):
+        load_config(DatasetConfig, overrides=["frames=0"])
     assert not (tmp_path / "ds").exists() and not (tmp_path / "ds.partial").exists()
+    # an existing dataset is never overwritten without --overwrite, and stays intact
+    with pytest.raises(ContractError, match="already exists"):
+        generate_dataset(MODELS, dataset, small_config())
+    assert read_manifest(dataset)["complete"]
 
 
 def test_cli_two_workers(tmp_path):

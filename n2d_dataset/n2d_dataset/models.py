@@ -60,6 +60,22 @@ class Model:
         return read_model_mesh(self.directory)
 
 
+MAX_EXTENT_M = 2.0
+"""A model larger than this (metres) is taken for a mesh written in millimetres."""
+
+
+def _check_mesh(model: Model) -> None:
+    """Refuse meshes the renderer would silently get wrong: no texture coordinates, or not in metres."""
+    text = (model.directory / "mesh.obj").read_text(errors="replace")
+    if "\nvt " not in text:
+        raise ContractError(f"{model.directory / 'mesh.obj'} has no texture coordinates (vt): it would render "
+                            "untextured", "export the model with its UV atlas (n2d reconstruct writes one)")
+    extent = float(np.ptp(model.mesh.vertices, axis=0).max())
+    if extent > MAX_EXTENT_M:
+        raise ContractError(f"{model.directory / 'mesh.obj'} is {extent:.1f} units across: it looks like millimetres, "
+                            "n2d models are in metres", "scale the mesh by 0.001 (n2d reconstruct writes metres)")
+
+
 def load_models(directories: list[str | Path]) -> list[Model]:
     """Check and read the model directories; refuses duplicates and models that are not complete n2d models."""
     if not directories:
@@ -82,5 +98,7 @@ def load_models(directories: list[str | Path]) -> list[Model]:
                                 "re-run n2d reconstruct for this model") from None
         if not (d / "mesh.obj").is_file():
             raise ContractError(f"{d} has no mesh.obj", "re-run n2d reconstruct for this model")
-        models.append(Model(name, i + 1, d, entry))
+        model = Model(name, i + 1, d, entry)
+        _check_mesh(model)
+        models.append(model)
     return models
