@@ -1,7 +1,7 @@
 """Dataset writers: per-frame files in BOP's train_pbr layout with DOPE JSON next to each image, then the
 chunk-level JSON files, the models and the camera, assembled from the per-frame records.
 
-Layout (BOP, https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
+Layout (BOP, as bop_toolkit's docs/bop_datasets_format.md describes it):
   camera.json                        intrinsics of every frame (one fixed camera), depth_scale
   models/models_info.json, obj_NNNNNN.ply (mm), <name>/ (the n2d model, metres)
   train_pbr/CCCCCC/rgb/IIIIII.jpg    (or .png) and IIIIII.json, the DOPE annotation of that image
