@@ -237,6 +237,52 @@ def cmd_dataset(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    import threading
+
+    from n2d_dope.config import TrainConfig
+    from n2d_dope.train import train
+
+    cfg = _config(TrainConfig, args, base=TrainConfig.preset(args.backbone))
+    if args.epochs:
+        cfg.epochs = args.epochs
+    if args.minutes is not None:
+        cfg.max_minutes = args.minutes
+    cfg.__post_init__()
+    cancel = threading.Event()
+    try:
+        s = train(args.dataset, args.out, cfg, object_name=args.object, overwrite=args.overwrite,
+                  progress=_progress_bar("train"), cancel=cancel)
+    except KeyboardInterrupt:
+        cancel.set()
+        raise
+    held = f", held-out loss {s['held_out_loss']:.5f}" if s["held_out_loss"] is not None else ""
+    print(f"train: {s['object']} ({s['backbone']}, {s['parameters'] / 1e6:.2f} M parameters): {s['steps']} steps on "
+          f"{s['train_frames']} frames in {s['train_seconds']:.0f} s on {s['device']}{held}")
+    export = s["export"]
+    line = f"ONNX opset {export['opset']}, max |onnx - torch| {export['max_abs_diff_vs_torch']:.1e}"
+    if "int8" in export:
+        line += f"; INT8 belief max |int8 - fp32| {export['int8']['belief_max_abs_diff_vs_fp32']:.3f}"
+    print(f"train: {line}")
+    print(f"train: wrote {args.out}/ (model.onnx, config.json, checkpoint.pt, training.json)")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from n2d_dope.evaluate import evaluate
+
+    r = evaluate(args.model, args.dataset, name=args.name, precision=args.precision, max_frames=args.frames,
+                 progress=_progress_bar("evaluate"))
+    print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['frames']} frames ({args.precision})")
+    print(f"evaluate: ADD-S accuracy {100 * r['adds_accuracy_10pct']:.1f} %, ADD {100 * r['add_accuracy_10pct']:.1f} % "
+          f"(10 % of the {r['diameter_mm']:.0f} mm diameter); AUC to 10 cm: ADD-S {100 * r['adds_auc_10cm']:.1f}, "
+          f"ADD {100 * r['add_auc_10cm']:.1f}")
+    print(f"evaluate: network {r['network_ms_mean']:.1f} ms, post-processing {r['postprocess_ms_mean']:.1f} ms "
+          "per frame")
+    print(f"evaluate: wrote {args.model}/eval.json ({args.name}/{args.precision}) and eval_{args.name}.png")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="n2d", description="n2d: from an object on a turntable to a live 6D pose estimator (ROS 2).",
@@ -331,6 +377,36 @@ def build_parser() -> argparse.ArgumentParser:
                    "work of another config")
     _add_config_options(p)
     p.set_defaults(func=cmd_dataset)
+
+    p = sub.add_parser("train", help="train a DOPE network for one object of a dataset and export it to ONNX",
+                       description="Train DOPE (belief maps of the cuboid's 8 corners + centroid, affinity fields, "
+                       "intermediate supervision) on a dataset from n2d dataset, with sim-to-real augmentation, then "
+                       "export model.onnx (+ model_int8.onnx, calibrated on training frames) and config.json. "
+                       "Backbones: lite (EfficientNet-Lite0 with ImageNet weights, real time on a CPU) or vgg (DOPE as "
+                       "published, needs a GPU). CUDA when present. Ctrl-C saves a checkpoint; the same command "
+                       "resumes.")
+    p.add_argument("dataset", type=Path, help="dataset directory (from n2d dataset)")
+    p.add_argument("out", type=Path, help="DOPE model directory to write")
+    p.add_argument("--object", help="object to train for (default: the dataset's only object)")
+    p.add_argument("--backbone", choices=["lite", "vgg", "tiny"], default="lite",
+                   help="preset: lite (CPU), vgg (DOPE as published: 6 stages, batch 64, lr 1e-4), tiny (tests)")
+    p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")
+    p.add_argument("--minutes", type=float, help="stop training after this many minutes and export what it has")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing model, or discard unfinished "
+                   "training of another config")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="measure a DOPE model: ADD / ADD-S accuracy and AUC on dataset frames",
+                       description="Run the model on every frame of a dataset it was not trained on and compare with "
+                       "the ground truth: ADD and ADD-S accuracy at 10 %% of the object diameter, AUC up to 10 cm, "
+                       "per-frame timings. Writes MODEL/eval.json (under NAME/PRECISION) and MODEL/eval_NAME.png.")
+    p.add_argument("model", type=Path, help="DOPE model directory (from n2d train)")
+    p.add_argument("dataset", type=Path, help="test dataset directory (from n2d dataset, another seed)")
+    p.add_argument("--name", default="synthetic", help="name of this test set in eval.json")
+    p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="which exported model to run")
+    p.add_argument("--frames", type=int, default=0, help="evaluate only the first N frames (0: all)")
+    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("sim", help="start the simulated world until Ctrl-C",
                        description="Start the simulated servo (on a pty at --port) and the simulated camera "

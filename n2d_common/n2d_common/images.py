@@ -19,6 +19,34 @@ def draw_mask_outline(rgb: np.ndarray, mask: np.ndarray, color=(0, 255, 0), thic
     return out
 
 
+CUBOID_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+"""Cuboid edges between keypoints in DOPE order (front face 0-3, rear face 4-7)."""
+_FRONT = (0, 1, 2, 3)
+
+
+def draw_cuboid(rgb: np.ndarray, points_px: np.ndarray, front=(255, 40, 40), rest=(40, 255, 40),
+                thickness: int = 1) -> None:
+    """Draw the cuboid with keypoints `points_px` (8 corners in DOPE order, in pixels) onto `rgb`, in place;
+    edges touching a missing (NaN) corner are skipped."""
+    pts = np.asarray(points_px, dtype=float)
+    for a, b in CUBOID_EDGES:
+        if np.isfinite(pts[[a, b]]).all():
+            color = front if a in _FRONT and b in _FRONT else rest
+            cv2.line(rgb, tuple(np.round(pts[a]).astype(int)), tuple(np.round(pts[b]).astype(int)), color,
+                     thickness, cv2.LINE_AA)
+
+
+def draw_axes(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, length_m: float, thickness: int = 2) -> None:
+    """Draw the object's X, Y, Z axes (red, green, blue) of `length_m` onto `rgb`, in place."""
+    from n2d_common.frames import project
+
+    if T_cam_obj[2, 3] <= 0:
+        return
+    o, x, y, z = np.round(project(K, T_cam_obj, np.vstack([np.zeros(3), np.eye(3) * length_m]))).astype(int)
+    for end, color in ((x, (255, 0, 0)), (y, (0, 255, 0)), (z, (0, 0, 255))):
+        cv2.line(rgb, tuple(o), tuple(end), color, thickness, cv2.LINE_AA)
+
+
 def contact_sheet(images: list[np.ndarray], labels: list[str] | None = None, cols: int | None = None,
                   thumb_width: int = 320) -> np.ndarray:
     """Tile RGB images into one sheet, each scaled to `thumb_width` with its label in a corner."""

@@ -8,16 +8,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from n2d_common.frames import make_T, project
-from n2d_common.images import contact_sheet, draw_mask_outline, read_png, write_png
+from n2d_common.frames import make_T
+from n2d_common.images import contact_sheet, draw_axes, draw_cuboid, draw_mask_outline, read_png, write_png
 from n2d_dataset.writer import frame_location, rgb_name
-
-EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
-"""Cuboid edges between keypoints in DOPE order (front face 0-3, rear face 4-7)."""
-FRONT = (0, 1, 2, 3)
 
 
 def draw_frame(rgb: np.ndarray, dope: dict, gt: list[dict], K: np.ndarray, masks: list[np.ndarray]) -> np.ndarray:
@@ -26,17 +21,10 @@ def draw_frame(rgb: np.ndarray, dope: dict, gt: list[dict], K: np.ndarray, masks
     for mask in masks:
         out = draw_mask_outline(out, mask, (255, 255, 0), 1)
     for obj, g in zip(dope["objects"], gt):
-        pts = np.round(np.array(obj["projected_cuboid"])).astype(int)
-        for a, b in EDGES:
-            color = (255, 40, 40) if a in FRONT and b in FRONT else (40, 255, 40)
-            cv2.line(out, tuple(pts[a]), tuple(pts[b]), color, 1, cv2.LINE_AA)
+        draw_cuboid(out, np.array(obj["projected_cuboid"])[:8])
         T = make_T(np.array(g["cam_R_m2c"]).reshape(3, 3), np.array(g["cam_t_m2c"]) / 1000.0)
         length = 0.5 * np.linalg.norm(np.array(obj["cuboid"][0]) - np.array(obj["cuboid"][6])) / 100.0
-        if T[2, 3] <= 0:
-            continue
-        o, x, y, z = np.round(project(K, T, np.vstack([np.zeros(3), np.eye(3) * length]))).astype(int)
-        for end, color in ((x, (255, 0, 0)), (y, (0, 255, 0)), (z, (0, 0, 255))):
-            cv2.line(out, tuple(o), tuple(end), color, 2, cv2.LINE_AA)
+        draw_axes(out, K, T, length)
     return out
 
 

@@ -10,7 +10,6 @@ differentiable tensors and training never needs a double backward through the ha
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional
 
+from n2d_common.torch_utils import atomic_torch_save, resolve_device
 from n2d_reconstruct.neus.encoding import HashGrid
 from n2d_reconstruct.neus.renderer import Normaliser, RenderSpec, box_intersect, camera_rays, pixel_grid, render_rays
 
@@ -153,13 +153,6 @@ class NeusNetwork(nn.Module):
         self.level_mask.copy_((active - levels).clamp(0.0, 1.0))
 
 
-def resolve_device(name: str) -> torch.device:
-    """"auto" is CUDA when available, else the CPU; other names are torch device names."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 class NeusField:
     """A trained NeuS field in the turntable frame (metres): SDF, albedo and volume rendering on numpy arrays.
 
@@ -238,15 +231,6 @@ class NeusField:
         net = NeusNetwork(FieldSpec(**state["field_spec"]))
         net.load_state_dict(state["network"])
         return cls(net, np.asarray(state["aabb"]), RenderSpec(**state["render_spec"]), device)
-
-
-def atomic_torch_save(obj: dict, path: str | Path) -> None:
-    """torch.save to a temporary file next to `path`, then rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 def _box_sdf(points: np.ndarray, aabb: np.ndarray) -> np.ndarray:

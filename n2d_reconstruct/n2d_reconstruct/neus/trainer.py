@@ -22,8 +22,9 @@ from torch.nn import functional
 
 from n2d_common.errors import Cancelled, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_common.torch_utils import atomic_torch_save, resolve_device
 from n2d_reconstruct.data import Views
-from n2d_reconstruct.neus.field import FieldSpec, NeusField, NeusNetwork, atomic_torch_save, resolve_device
+from n2d_reconstruct.neus.field import FieldSpec, NeusField, NeusNetwork
 from n2d_reconstruct.neus.renderer import (
     Normaliser,
     RenderSpec,

@@ -1,0 +1,139 @@
+"""Configs of the DOPE stage: training (with its augmentation) and detection."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass
+class AugmentConfig:
+    """Sim-to-real augmentation, applied on the fly to every training sample (numpy/OpenCV, no torchvision)."""
+
+    scale: tuple[float, float] = (0.7, 1.4)
+    """Random zoom range relative to fitting the image to the input size."""
+    rotate_deg: float = 15.0
+    """Random in-plane rotation, +- degrees."""
+    shift: float = 0.15
+    """Random translation, as a fraction of the input size."""
+    background_swap: float = 0.4
+    """Probability of replacing everything outside the annotated objects' masks by another frame or noise."""
+    brightness: float = 0.3
+    """Random brightness gain range (+-)."""
+    contrast: float = 0.3
+    """Random contrast range (+-)."""
+    saturation: float = 0.3
+    """Random saturation range (+-)."""
+    hue_deg: float = 8.0
+    """Random hue shift, +- degrees."""
+    noise: float = 0.03
+    """Maximum standard deviation of additive Gaussian noise (0..1 intensities)."""
+    blur: float = 0.3
+    """Probability of a Gaussian blur (sigma 0.5..1.5 px)."""
+
+    def __post_init__(self):
+        if not 0 < self.scale[0] <= self.scale[1]:
+            raise ValueError(f"augment.scale must be 0 < min <= max, got {self.scale}")
+        for name in ("background_swap", "blur"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"augment.{name} is a probability in 0..1, got {getattr(self, name)}")
+
+
+@dataclass
+class TrainConfig:
+    """Training of one DOPE network for one object."""
+
+    backbone: Literal["lite", "vgg"] = "lite"
+    """lite: EfficientNet-Lite0 trunk (ImageNet weights) + separable heads, real time on a CPU; vgg: DOPE as
+    published (VGG-19 trunk from scratch, 50M parameters; needs a GPU)."""
+    stages: int = 3
+    """Belief/affinity stages (DOPE: 6)."""
+    input_size: tuple[int, int] = (320, 240)
+    """Network input width, height in pixels during training (multiples of 16)."""
+    epochs: int = 30
+    """Passes over the training frames."""
+    max_minutes: float = 0.0
+    """Stop (and finish normally) after this much training time; 0 = no limit."""
+    batch_size: int = 16
+    """Images per step (DOPE: 64 on a GPU)."""
+    lr: float = 1e-3
+    """Adam learning rate (DOPE: 1e-4 for the VGG network)."""
+    lr_final_fraction: float = 0.1
+    """The learning rate decays (cosine) to this fraction of `lr` over the run."""
+    sigma_cells: float = 2.0
+    """Standard deviation of the belief Gaussians, in output cells (8 input pixels)."""
+    affinity_radius_cells: float = 2.5
+    """Radius around each corner where the affinity field is set, in output cells."""
+    hidden_keypoints: bool = True
+    """Also train keypoints hidden by other surfaces (DOPE does; PnP then has all 9 points under occlusion)."""
+    min_visibility: float = 0.1
+    """Instances with a smaller visible fraction get no targets."""
+    holdout: float = 0.05
+    """Fraction of the dataset's frames kept out of training (every k-th frame) to report a held-out loss."""
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    """Sim-to-real augmentation."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """auto: CUDA when present."""
+    threads: int = 0
+    """CPU threads for torch (0: all cores)."""
+    seed: int = 0
+    """Seed of the initialisation, the frame order and the augmentation."""
+    checkpoint_every_s: float = 120.0
+    """Save a checkpoint at most this often (and at every epoch end, on cancel and at the end)."""
+    opset: int = 17
+    """ONNX opset of the exported model."""
+    int8: bool = True
+    """Also write a statically quantised INT8 ONNX model (calibrated on training frames)."""
+    calibration_frames: int = 32
+    """Training frames used to calibrate the INT8 model."""
+
+    def __post_init__(self):
+        if self.stages < 1:
+            raise ValueError(f"stages must be >= 1, got {self.stages}")
+        if any(v <= 0 or v % 16 for v in self.input_size):
+            raise ValueError(f"input_size must be positive multiples of 16, got {list(self.input_size)}")
+        for name in ("epochs", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.lr <= 0 or self.sigma_cells <= 0 or self.affinity_radius_cells <= 0:
+            raise ValueError("lr, sigma_cells and affinity_radius_cells must be positive")
+        if not 0.0 <= self.holdout < 0.5:
+            raise ValueError(f"holdout must be in 0..0.5, got {self.holdout}")
+
+    @classmethod
+    def preset(cls, name: str) -> TrainConfig:
+        """lite (CPU, ~an hour), vgg (DOPE as published: 6 stages, lr 1e-4, batch 64, 100 epochs, a GPU), tiny
+        (tests)."""
+        if name == "lite":
+            return cls()
+        if name == "vgg":
+            return cls(backbone="vgg", stages=6, lr=1e-4, batch_size=64, epochs=100, input_size=(400, 400))
+        if name == "tiny":
+            return cls(stages=1, epochs=2, batch_size=4, input_size=(160, 128), calibration_frames=4,
+                       checkpoint_every_s=1.0)
+        raise ValueError(f"unknown preset {name!r}: use lite, vgg or tiny")
+
+
+@dataclass
+class DetectConfig:
+    """Turning the network's maps into poses."""
+
+    peak_threshold: float = 0.1
+    """Minimum belief (after smoothing) for a keypoint peak."""
+    smooth_sigma_cells: float = 0.5
+    """Gaussian smoothing of the belief maps before peak finding, in output cells (0 = none)."""
+    affinity_threshold: float = 0.5
+    """Maximum angle (radians) between a corner's affinity vector and the direction to a centroid."""
+    min_keypoints: int = 5
+    """Detections with fewer keypoints (centroid included) are dropped; PnP needs at least 4."""
+    max_instances: int = 8
+    """At most this many detections per object and image."""
+    net_scale: float = 0.0
+    """Resize factor from the camera image to the network input; 0 = automatic: match the focal length the
+    model was trained at, so objects appear at the sizes they had in training."""
+
+    def __post_init__(self):
+        if self.min_keypoints < 4:
+            raise ValueError(f"min_keypoints must be >= 4 (PnP), got {self.min_keypoints}")
+        if self.net_scale < 0:
+            raise ValueError(f"net_scale must be >= 0, got {self.net_scale}")

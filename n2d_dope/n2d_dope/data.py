@@ -1,0 +1,196 @@
+"""Training data of DOPE: the frames of an n2d dataset showing one object, augmented, with their targets.
+
+A dataset (from `n2d dataset`) holds BOP `train_pbr/<chunk>/rgb/<frame>.jpg` with a DOPE JSON beside each image
+and the visible masks in `mask_visib/`. The cuboid of each object, and the corner order, are in its manifest.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from n2d_common.contracts import open_stage
+from n2d_common.errors import ContractError
+from n2d_dope.config import AugmentConfig, TrainConfig
+from n2d_dope.network import STRIDE
+from n2d_dope.targets import make_targets
+
+KEYPOINTS_ORDER_NAME = "cuboid_order"
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One dataset image and its annotations."""
+
+    image: Path
+    annotation: Path
+    chunk: Path
+    frame_id: int
+
+    def masks(self) -> list[Path]:
+        """Visible masks of every annotated instance in the frame (all objects)."""
+        return sorted((self.chunk / "mask_visib").glob(f"{self.frame_id:06d}_*.png"))
+
+
+@dataclass(frozen=True)
+class DatasetInfo:
+    """What training and evaluation need from a dataset's manifest."""
+
+    directory: Path
+    frames: list[Frame]
+    cuboid_points_m: dict[str, np.ndarray]
+    """Object name -> 9 x 3 keypoints (8 corners + centroid, the manifest's order) in the object frame, metres."""
+    cuboid_order: list[str]
+    focal_px: float
+    image_size: tuple[int, int]
+    models: dict[str, str]
+    """Object name -> model directory."""
+
+
+def open_dataset(directory: str | Path) -> DatasetInfo:
+    """Read a complete n2d dataset: its frames (sorted) and the cuboids of its objects."""
+    directory = Path(directory)
+    manifest = open_stage(directory, "dataset")
+    extra, camera = manifest["extra"], manifest["config"]["camera"]
+    if not extra.get("annotated", True):
+        raise ContractError(f"{directory} was rendered without annotations", "generate it with annotate: true")
+    signs = np.array(extra["cuboid_signs"], dtype=float)
+    cuboids = {name: np.array(c["center"]) + signs * np.array(c["size"]) / 2 for name, c in extra["cuboids_m"].items()}
+    frames = []
+    for annotation in sorted(directory.glob("train_pbr/*/rgb/*.json")):
+        image = next((annotation.with_suffix(s) for s in (".jpg", ".png") if annotation.with_suffix(s).is_file()),
+                     None)
+        if image is not None:
+            frames.append(Frame(image, annotation, annotation.parent.parent, int(annotation.stem)))
+    if not frames:
+        raise ContractError(f"{directory} has no frames with DOPE annotations (train_pbr/*/rgb/*.json)",
+                            "generate the dataset with n2d dataset")
+    return DatasetInfo(directory, frames, cuboids, list(extra[KEYPOINTS_ORDER_NAME]), float(camera["focal_px"]),
+                       (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]))
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ContractError(f"cannot read image {path}", "the dataset is damaged; regenerate it")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def instances(annotation: dict, object_name: str, min_visibility: float) -> list[dict]:
+    """The DOPE entries of `object_name` in one frame's annotation, at least `min_visibility` visible."""
+    return [o for o in annotation["objects"]
+            if o["class"] == object_name and o.get("visibility", 1.0) >= min_visibility]
+
+
+def affine(image_size: tuple[int, int], input_size: tuple[int, int], rng: np.random.Generator | None,
+           aug: AugmentConfig) -> np.ndarray:
+    """2 x 3 map from dataset pixels to network-input pixels: fit, then (with `rng`) zoom, rotate and shift."""
+    (w, h), (iw, ih) = image_size, input_size
+    s, angle, shift = min(iw / w, ih / h), 0.0, np.zeros(2)
+    if rng is not None:
+        s *= np.exp(rng.uniform(np.log(aug.scale[0]), np.log(aug.scale[1])))
+        angle = rng.uniform(-aug.rotate_deg, aug.rotate_deg)
+        shift = rng.uniform(-aug.shift, aug.shift, 2) * (iw, ih)
+    M = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle, s)
+    M[:, 2] += ((iw - 1) / 2 - (w - 1) / 2) + shift[0], ((ih - 1) / 2 - (h - 1) / 2) + shift[1]
+    return M
+
+
+def warp_points(M: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.asarray(points, dtype=np.float64) @ M[:, :2].T + M[:, 2]
+
+
+def _noise_background(rng: np.random.Generator, size: tuple[int, int]) -> np.ndarray:
+    """Smooth random colour blobs over fine noise: a background no render contains."""
+    w, h = size
+    cells = rng.integers(2, 12)
+    blobs = cv2.resize(rng.uniform(0, 255, (cells, cells, 3)).astype(np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+    return np.clip(blobs + rng.normal(0, rng.uniform(0, 25), (h, w, 3)), 0, 255).astype(np.uint8)
+
+
+def photometric(image: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
+    """Colour jitter (brightness, contrast, saturation, hue), blur and noise on an RGB uint8 image."""
+    hsv = cv2.cvtColor(image, cv2.COLOR_RGB2HSV).astype(np.float32)
+    hsv[..., 0] = (hsv[..., 0] + rng.uniform(-aug.hue_deg, aug.hue_deg) / 2) % 180
+    hsv[..., 1] *= 1 + rng.uniform(-aug.saturation, aug.saturation)
+    img = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB).astype(np.float32) / 255
+    img = img * (1 + rng.uniform(-aug.brightness, aug.brightness))
+    img = (img - img.mean()) * (1 + rng.uniform(-aug.contrast, aug.contrast)) + img.mean()
+    if rng.random() < aug.blur:
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 1.5))
+    img = img + rng.normal(0, rng.uniform(0, aug.noise), img.shape).astype(np.float32)
+    return np.clip(img, 0, 1)
+
+
+class DopeSamples(torch.utils.data.Dataset):
+    """(image 3 x H x W in 0..1, beliefs 9 x H/8 x W/8, affinities 16 x H/8 x W/8) of one object's frames.
+
+    With `augment` every item is a new random view of its frame, drawn from (seed, epoch, index) so a run is
+    reproducible; call `set_epoch` before each epoch. Without it, frames are only fitted to the input size.
+    """
+
+    def __init__(self, info: DatasetInfo, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool):
+        self.info, self.frames, self.object_name, self.cfg, self.augment = info, frames, object_name, cfg, augment
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int):
+        cfg, aug = self.cfg, self.cfg.augment
+        rng = np.random.default_rng([cfg.seed, self.epoch, index]) if self.augment else None
+        frame = self.frames[index]
+        annotation = json.loads(frame.annotation.read_text())
+        rgb = read_rgb(frame.image)
+        size = (rgb.shape[1], rgb.shape[0])
+        M = affine(size, cfg.input_size, rng, aug)
+        fill = tuple(int(v) for v in rng.integers(0, 256, 3)) if rng is not None else (127, 127, 127)
+        image = cv2.warpAffine(rgb, M, cfg.input_size, flags=cv2.INTER_LINEAR, borderValue=fill)
+        if rng is not None and rng.random() < aug.background_swap:
+            image = self._swap_background(image, frame, M, rng)
+        image = photometric(image, rng, aug) if rng is not None else image.astype(np.float32) / 255
+        keypoints, visible = [], []
+        for obj in instances(annotation, self.object_name, cfg.min_visibility):
+            keypoints.append(warp_points(M, obj["projected_cuboid"]))
+            vis = np.array(obj.get("keypoint_visibility", [1] * 9), bool)
+            visible.append(np.ones(9, bool) if cfg.hidden_keypoints else vis)
+        map_size = (cfg.input_size[0] // STRIDE, cfg.input_size[1] // STRIDE)
+        beliefs, affinities = make_targets(keypoints, visible, map_size, cfg.sigma_cells, cfg.affinity_radius_cells)
+        return (torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))), torch.from_numpy(beliefs),
+                torch.from_numpy(affinities))
+
+    def _swap_background(self, image: np.ndarray, frame: Frame, M: np.ndarray, rng: np.random.Generator):
+        """Keep the annotated objects (their visible masks), replace the rest by noise or by another frame whose
+        own annotated objects are blanked out (an unlabelled copy of the object would teach it to be ignored)."""
+        union = _union_mask(frame)
+        if union is None:
+            return image
+        keep = cv2.warpAffine(union, M, self.cfg.input_size, flags=cv2.INTER_NEAREST).astype(bool)
+        background = _noise_background(rng, self.cfg.input_size)
+        other = self.frames[int(rng.integers(len(self.frames)))]
+        other_mask = _union_mask(other)
+        if rng.random() < 0.5 and other != frame and other_mask is not None:
+            size = self.cfg.input_size
+            other_rgb = cv2.resize(read_rgb(other.image), size, interpolation=cv2.INTER_AREA)[:, ::-1]
+            other_mask = cv2.resize(other_mask, size, interpolation=cv2.INTER_NEAREST)[:, ::-1].astype(bool)
+            background = np.where(other_mask[..., None], background, other_rgb)
+        return np.where(keep[..., None], image, background)
+
+
+def _union_mask(frame: Frame) -> np.ndarray | None:
+    """Union of the visible masks of every annotated instance of a frame (uint8 0/1), None without masks."""
+    masks = frame.masks()
+    if not masks:
+        return None
+    union = cv2.imread(str(masks[0]), cv2.IMREAD_GRAYSCALE) > 0
+    for path in masks[1:]:
+        union |= cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
+    return union.astype(np.uint8)

@@ -1,0 +1,179 @@
+"""DOPE inference on an ONNX model: image -> belief and affinity maps -> keypoints -> instances -> PnP poses.
+
+`DopeModel(directory)` loads a DOPE model directory (from `n2d train`); `detect(rgb, K)` returns one `Detection`
+per instance found, with `T_cam_obj` (object frame -> OpenCV camera frame, metres). No ROS here: `dope_node`,
+`n2d evaluate` and the benchmarks all call this.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from n2d_common.contracts import open_stage
+from n2d_common.errors import ConfigError
+from n2d_dope.config import DetectConfig
+from n2d_dope.export import INPUT, OUTPUTS, session
+from n2d_dope.network import INPUT_MULTIPLE
+from n2d_dope.targets import CENTROID, to_image
+
+
+@dataclass
+class Detection:
+    """One object instance found in an image."""
+
+    object: str
+    """Object (class) name."""
+    T_cam_obj: np.ndarray
+    """4 x 4 pose: object frame -> OpenCV camera frame, metres."""
+    score: float
+    """Confidence in 0..1: the summed peak beliefs of the keypoints used, over 9."""
+    keypoints_px: np.ndarray
+    """9 x 2 image pixels of the keypoints found (DOPE order), NaN where none was found."""
+    reprojection_px: float
+    """RMS distance between the found keypoints and the cuboid projected with the pose."""
+
+
+@dataclass
+class Timing:
+    """Seconds spent per phase of the last `detect` call."""
+
+    preprocess: float = 0.0
+    network: float = 0.0
+    postprocess: float = 0.0
+
+
+def find_peaks(belief: np.ndarray, threshold: float, smooth_sigma: float) -> np.ndarray:
+    """Local maxima of one belief map above `threshold`: rows (x, y, value) in map cells, strongest first.
+
+    Sub-cell position from a parabola through the logarithm of the peak and its 4 neighbours: exact for a
+    Gaussian peak (the targets are Gaussians, and smoothing a Gaussian keeps it one)."""
+    b = cv2.GaussianBlur(belief, (0, 0), smooth_sigma) if smooth_sigma > 0 else belief
+    peaks = (b >= cv2.dilate(b, np.ones((3, 3), np.uint8))) & (b > threshold)
+    ys, xs = np.nonzero(peaks)
+    logb = np.log(np.clip(np.pad(b, 1, mode="edge"), 1e-6, None))
+    out = []
+    for y, x in zip(ys, xs):
+        c = logb[y + 1, x + 1]
+        offsets = []
+        for lo, hi in ((logb[y + 1, x], logb[y + 1, x + 2]), (logb[y, x + 1], logb[y + 2, x + 1])):
+            curvature = lo - 2 * c + hi
+            offsets.append(float(np.clip(0.5 * (lo - hi) / curvature, -1, 1)) if curvature < -1e-9 else 0.0)
+        out.append((x + offsets[0], y + offsets[1], float(b[y, x])))
+    out.sort(key=lambda p: -p[2])
+    return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+
+def _sample(field2: np.ndarray, x: float, y: float) -> np.ndarray:
+    """Bilinear sample of a 2 x h x w field at map coordinates (x, y)."""
+    return np.array([cv2.getRectSubPix(f, (1, 1), (float(x), float(y)))[0, 0] for f in field2])
+
+
+def group_instances(beliefs: np.ndarray, affinities: np.ndarray, cfg: DetectConfig) -> list[np.ndarray]:
+    """Per instance a 9 x 3 array (x, y in map cells, belief; NaN where missing): centroid peaks are instances,
+    each corner peak joins the centroid its affinity vector points at (within `cfg.affinity_threshold` rad),
+    and each instance keeps its strongest corner of each kind."""
+    centroids = find_peaks(beliefs[CENTROID], cfg.peak_threshold, cfg.smooth_sigma_cells)[:cfg.max_instances]
+    groups = [np.full((9, 3), np.nan) for _ in centroids]
+    for g, c in zip(groups, centroids):
+        g[CENTROID] = c
+    if not groups:
+        return []
+    for k in range(CENTROID):
+        for x, y, value in find_peaks(beliefs[k], cfg.peak_threshold, cfg.smooth_sigma_cells):
+            v = _sample(affinities[2 * k:2 * k + 2], x, y)
+            if np.linalg.norm(v) < 1e-3:
+                continue
+            to_centroids = centroids[:, :2] - (x, y)
+            cosines = to_centroids @ v / (np.linalg.norm(to_centroids, axis=1) * np.linalg.norm(v) + 1e-9)
+            best = int(np.argmax(cosines))
+            if np.arccos(np.clip(cosines[best], -1, 1)) > cfg.affinity_threshold:
+                continue
+            if np.isnan(groups[best][k, 2]) or groups[best][k, 2] < value:
+                groups[best][k] = (x, y, value)
+    return groups
+
+
+def solve_pose(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Pose (4 x 4, object -> camera) from the found keypoints (9 x 2, NaN where missing) by SQPnP refined with
+    Levenberg-Marquardt, and the RMS reprojection error; None when fewer than 4 points or no solution in front."""
+    ok = np.isfinite(points_px).all(axis=1)
+    if ok.sum() < 4:
+        return None
+    obj, img = cuboid_m[ok].astype(np.float64), points_px[ok].astype(np.float64)
+    found, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    if not found:
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec)
+    if tvec[2, 0] <= 0:
+        return None
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec[:, 0]
+    proj = cv2.projectPoints(obj, rvec, tvec, K, None)[0][:, 0]
+    return T, float(np.sqrt(((proj - img) ** 2).sum(1).mean()))
+
+
+class DopeModel:
+    """A DOPE model directory ready to detect its object: the ONNX session and the cuboid."""
+
+    def __init__(self, directory: str | Path, *, precision: str = "fp32", cfg: DetectConfig | None = None,
+                 threads: int = 0):
+        self.directory = Path(directory)
+        open_stage(self.directory, "dope_model")
+        self.config = json.loads((self.directory / "config.json").read_text())
+        if precision not in self.config["models"]:
+            raise ConfigError(f"{self.directory} has no {precision} model",
+                              f"available: {', '.join(self.config['models'])}")
+        self.precision = precision
+        self.cfg = cfg or DetectConfig()
+        self.name = self.config["object"]
+        self.cuboid_m = np.array(self.config["cuboid_points_m"])
+        self.session = session(self.directory / self.config["models"][precision], threads)
+        self.timing = Timing()
+
+    def scale_for(self, K: np.ndarray) -> float:
+        """Camera image -> network input resize factor (`cfg.net_scale`, or the trained focal over the camera's)."""
+        if self.cfg.net_scale > 0:
+            return self.cfg.net_scale
+        return float(self.config["trained_focal_px"]) / float(np.sqrt(K[0, 0] * K[1, 1]))
+
+    def maps(self, rgb: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """Belief (9 x h x w) and affinity (16 x h x w) maps of an RGB uint8 image resized by `scale`."""
+        t0 = time.perf_counter()
+        h, w = rgb.shape[:2]
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        img = rgb if size == (w, h) else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        padded = np.zeros((-(-size[1] // INPUT_MULTIPLE) * INPUT_MULTIPLE,
+                           -(-size[0] // INPUT_MULTIPLE) * INPUT_MULTIPLE, 3), np.float32)
+        padded[:size[1], :size[0]] = img.astype(np.float32) / 255.0
+        x = np.ascontiguousarray(padded.transpose(2, 0, 1)[None])
+        t1 = time.perf_counter()
+        belief, affinity = self.session.run(list(OUTPUTS), {INPUT: x})
+        self.timing.preprocess, self.timing.network = t1 - t0, time.perf_counter() - t1
+        return belief[0], affinity[0]
+
+    def detect(self, rgb: np.ndarray, K: np.ndarray) -> list[Detection]:
+        """Instances of the object in an RGB uint8 image taken with intrinsics K (3 x 3, undistorted)."""
+        scale = self.scale_for(K)
+        beliefs, affinities = self.maps(rgb, scale)
+        t0 = time.perf_counter()
+        detections = []
+        for group in group_instances(beliefs, affinities, self.cfg):
+            found = np.isfinite(group[:, 2])
+            if found.sum() < self.cfg.min_keypoints:
+                continue
+            # map cell -> network-input pixel -> camera-image pixel (pixel centres: (u + 0.5) / s - 0.5)
+            points = (to_image(group[:, :2]) + 0.5) / scale - 0.5
+            solved = solve_pose(points, self.cuboid_m, K)
+            if solved is None:
+                continue
+            T, error = solved
+            detections.append(Detection(self.name, T, float(np.nansum(group[:, 2]) / 9), points, error))
+        self.timing.postprocess = time.perf_counter() - t0
+        return detections

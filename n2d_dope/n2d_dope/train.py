@@ -1,0 +1,225 @@
+"""Train a DOPE network for one object of an n2d dataset, then export it: the DOPE model directory.
+
+Output (`kind: dope_model`): `checkpoint.pt` (weights, optimiser, position), `model.onnx` (+ `model_int8.onnx`),
+`config.json` (what inference needs: object, cuboid keypoints in metres and their order, input convention,
+stride, the focal length and image size it was trained at) and `training.json` (losses, timings). While it
+trains, the checkpoint lives in `<out>.partial/`: Ctrl-C or a cancel saves it and the same call resumes at the
+exact batch (the frame order and augmentation are drawn from (seed, epoch, frame)).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from n2d_common.config import to_dict
+from n2d_common.contracts import atomic_write_json, stage_output
+from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
+from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_common.torch_utils import atomic_torch_save, resolve_device
+from n2d_dope.config import TrainConfig
+from n2d_dope.data import DatasetInfo, DopeSamples, Frame, instances, open_dataset
+from n2d_dope.export import export_onnx, quantize_int8
+from n2d_dope.network import DopeNet, parameter_count
+
+INPUT_CONVENTION = "float32 N x 3 x H x W, RGB, 0..1 (normalisation is inside the network), H and W multiples of 16"
+_NOT_IDENTITY = ("device", "threads", "checkpoint_every_s", "max_minutes", "int8", "calibration_frames")
+"""Config fields that do not change the training itself: a checkpoint written with other values still resumes."""
+
+
+def select_object(info: DatasetInfo, object_name: str | None) -> str:
+    """The object to train for: `object_name`, or the dataset's only object."""
+    names = sorted(info.cuboid_points_m)
+    if object_name is None:
+        if len(names) != 1:
+            raise ConfigError(f"{info.directory} shows {len(names)} objects ({', '.join(names)})",
+                              "choose one with --object NAME")
+        return names[0]
+    if object_name not in info.cuboid_points_m:
+        raise ConfigError(f"{info.directory} has no object {object_name!r}", f"its objects: {', '.join(names)}")
+    return object_name
+
+
+def split_frames(info: DatasetInfo, object_name: str, cfg: TrainConfig) -> tuple[list[Frame], list[Frame]]:
+    """(training, held-out) frames showing the object; every k-th such frame is held out."""
+    shown = [f for f in info.frames
+             if instances(json.loads(f.annotation.read_text()), object_name, cfg.min_visibility)]
+    if len(shown) < 2:
+        raise ContractError(f"{info.directory} shows {object_name} in {len(shown)} frame(s)",
+                            "generate more frames (n2d dataset --frames N)")
+    if cfg.holdout == 0:
+        return shown, []
+    every = max(2, round(1 / cfg.holdout))
+    return ([f for i, f in enumerate(shown) if i % every != every - 1],
+            [f for i, f in enumerate(shown) if i % every == every - 1])
+
+
+def dope_loss(outputs, beliefs: torch.Tensor, affinities: torch.Tensor) -> torch.Tensor:
+    """DOPE's loss: mean squared error of every stage's beliefs and affinities (intermediate supervision)."""
+    out_beliefs, out_affinities = outputs
+    return sum(((b - beliefs) ** 2).mean() + ((a - affinities) ** 2).mean()
+               for b, a in zip(out_beliefs, out_affinities))
+
+
+def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: int):
+    """Yield (index, stacked batch) from batch `start` on, loading the next batch in a thread meanwhile."""
+    def load(b: int):
+        items = [samples[int(i)] for i in order[b * batch_size:(b + 1) * batch_size]]
+        return tuple(torch.stack(t) for t in zip(*items))
+
+    count = math.ceil(len(order) / batch_size)
+    with ThreadPoolExecutor(1) as pool:
+        pending = pool.submit(load, start) if start < count else None
+        for b in range(start, count):
+            batch = pending.result()
+            pending = pool.submit(load, b + 1) if b + 1 < count else None
+            yield b, batch
+
+
+def _identity(cfg: TrainConfig, object_name: str, dataset: Path) -> dict:
+    config = {k: v for k, v in to_dict(cfg).items() if k not in _NOT_IDENTITY}
+    return {"object": object_name, "dataset": str(dataset.absolute()), "train": config}
+
+
+def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = None, *, object_name: str | None = None,
+          overwrite: bool = False, progress: ProgressFn = no_progress,
+          cancel: threading.Event | None = None) -> dict:
+    """Train DOPE for `object_name` on the dataset and write the DOPE model directory `out`; returns the summary.
+
+    Raises Cancelled (after saving the checkpoint) when `cancel` is set; the same call resumes.
+    """
+    cfg = cfg or TrainConfig()
+    info = open_dataset(dataset_dir)
+    name = select_object(info, object_name)
+    train_frames, held_frames = split_frames(info, name, cfg)
+    device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    identity = _identity(cfg, name, info.directory)
+    with stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage:
+        ckpt_path = stage.path / "checkpoint.pt"
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
+        torch.manual_seed(cfg.seed)
+        net = DopeNet(cfg.backbone, cfg.stages, pretrained=state is None).to(device)
+        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+        steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
+        total = cfg.epochs * steps_per_epoch
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: cfg.lr_final_fraction + (1 - cfg.lr_final_fraction)
+                                                  * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)))
+        pos = {"step": 0, "elapsed_s": 0.0, "losses": []}
+        if state is not None:
+            net.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            sched.load_state_dict(state["scheduler"])
+            pos = state["position"]
+
+        def save() -> None:
+            atomic_torch_save({"model": net.state_dict(), "optimizer": opt.state_dict(),
+                               "scheduler": sched.state_dict(), "position": pos, "identity": identity}, ckpt_path)
+
+        samples = DopeSamples(info, train_frames, name, cfg, augment=True)
+        eta, t_start, last_save = Eta(), time.monotonic() - pos["elapsed_s"], time.monotonic()
+        limit_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
+        net.train()
+        stopped_early = False
+        while pos["step"] < total and not stopped_early:
+            epoch, first = divmod(pos["step"], steps_per_epoch)
+            samples.set_epoch(epoch)
+            order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
+            epoch_losses = []
+            for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
+                loss = dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device))
+                if not torch.isfinite(loss):
+                    raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
+                                   "lower --set lr=..., or re-run with --overwrite")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                sched.step()
+                pos["step"] += 1
+                pos["elapsed_s"] = time.monotonic() - t_start
+                epoch_losses.append(loss.item())
+                fraction = pos["step"] / total
+                progress(Progress(0.95 * fraction, "training", eta(fraction),
+                                  f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {loss.item():.5f}",
+                                  {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": loss.item()}))
+                if cancel is not None and cancel.is_set():
+                    save()
+                    raise Cancelled(f"training cancelled at step {pos['step']}/{total}",
+                                    "re-run the same command to resume")
+                if pos["elapsed_s"] >= limit_s:
+                    stopped_early = True
+                    break
+                if time.monotonic() - last_save >= cfg.checkpoint_every_s:
+                    save()
+                    last_save = time.monotonic()
+            pos["losses"].append(float(np.mean(epoch_losses)) if epoch_losses else None)
+            save()
+        net.eval()
+        summary = _finish(stage.path, net, info, name, train_frames, held_frames, cfg, pos, total, device, progress)
+        summary["parameters"] = parameter_count(net)
+        atomic_write_json(stage.path / "training.json", summary)
+        stage.finish(config=identity, inputs={"dataset": info.directory}, extra={"object": name,
+                                                                                  "backbone": cfg.backbone})
+    return summary
+
+
+def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: str, cfg: TrainConfig,
+                  device: torch.device) -> float | None:
+    """Mean DOPE loss of the network on un-augmented held-out frames."""
+    if not frames:
+        return None
+    samples = DopeSamples(info, frames, name, cfg, augment=False)
+    losses = []
+    with torch.no_grad():
+        for _, (images, beliefs, affinities) in _batches(samples, np.arange(len(samples)), cfg.batch_size, 0):
+            losses.append(dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device)).item())
+    return float(np.mean(losses))
+
+
+def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_frames: list[Frame],
+            held_frames: list[Frame], cfg: TrainConfig, pos: dict, total: int, device: torch.device,
+            progress: ProgressFn) -> dict:
+    """Held-out loss, ONNX (+ INT8) export and config.json; returns the training summary."""
+    progress(Progress(0.95, "exporting", -1, "held-out loss and ONNX export"))
+    held = held_out_loss(net, info, held_frames, name, cfg, device)
+    onnx = export_onnx(net, directory / "model.onnx", cfg.input_size, cfg.opset)
+    models = {"fp32": "model.onnx"}
+    if cfg.int8:
+        calib = DopeSamples(info, train_frames[::max(1, len(train_frames) // cfg.calibration_frames)]
+                            [:cfg.calibration_frames], name, cfg, augment=False)
+        onnx["int8"] = quantize_int8(directory / "model.onnx", directory / "model_int8.onnx",
+                                     [calib[i][0][None].numpy() for i in range(len(calib))])
+        models["int8"] = "model_int8.onnx"
+    config = {
+        "object": name,
+        "backbone": cfg.backbone,
+        "stages": cfg.stages,
+        "models": models,
+        "input": INPUT_CONVENTION,
+        "input_names": ["image"], "output_names": ["belief", "affinity"],
+        "stride": 8,
+        "map_cell_centre": "map cell j is centred on input pixel 8 j + 3.5",
+        "trained_input_size": list(cfg.input_size),
+        "trained_focal_px": info.focal_px * min(cfg.input_size[0] / info.image_size[0],
+                                                cfg.input_size[1] / info.image_size[1]),
+        "cuboid_order": info.cuboid_order,
+        "cuboid_points_m": info.cuboid_points_m[name].tolist(),
+        "model_frame": "the n2d model frame (bounding-box centre, Z up as it stood)",
+        "pose": "T_cam_obj: object frame -> OpenCV camera frame, metres",
+        "model_dir": info.models.get(name, ""),
+        "opset": cfg.opset,
+    }
+    atomic_write_json(directory / "config.json", config)
+    progress(Progress(1.0, "done", 0.0, f"{pos['step']} steps"))
+    return {"object": name, "backbone": cfg.backbone, "steps": pos["step"], "planned_steps": total,
+            "stopped_at_time_limit": pos["step"] < total, "train_frames": len(train_frames),
+            "held_out_frames": len(held_frames), "epoch_losses": pos["losses"], "held_out_loss": held,
+            "train_seconds": round(pos["elapsed_s"], 1), "device": str(device), "export": onnx}

