@@ -7,6 +7,7 @@ import subprocess
 import sys
 import threading
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -14,17 +15,19 @@ import torch
 from n2d_common.config import load_config
 from n2d_common.contracts import read_manifest
 from n2d_common.errors import Cancelled, ConfigError, ContractError
-from n2d_common.frames import make_T, rot_z
+from n2d_common.frames import make_T, project, rot_z
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.generate import generate_dataset
 from n2d_dope.config import DetectConfig, TrainConfig
 from n2d_dope.data import DopeSamples, open_dataset, warp_points
+from n2d_dope.evaluate import evaluate_session, session_ground_truth
 from n2d_dope.infer import group_instances, solve_pose
 from n2d_dope.metrics import add, add_s, auc, summarize
 from n2d_dope.network import DopeNet, parameter_count
 from n2d_dope.targets import make_targets, to_image, to_map
 from n2d_dope.train import train
 from n2d_sim.objects import sample_object_dir
+from n2d_sim.session import render_session, small_world
 
 SMALL = ["frames=4", "camera.width=320", "camera.height=240", "camera.focal_px=300", "render.samples=2",
          "camera.distance_m=[0.3,0.6]", "scene.instances_per_model=[2,2]", "scene.distractors=[1,2]"]
@@ -160,6 +163,20 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     visible = sum(i["visib_fract"] >= 0.25 for frame in info.values() for i in frame)
     assert evaluation["instances"] == visible and evaluation["frames"] == 4
     assert (out / "eval_synthetic.png").is_file()
+
+    # a turntable session as a test set: the true pose is the camera pose composed with the object's place
+    session = tmp_path / "session"
+    truth = render_session(session, small_world("box", 320, 240), views=3)
+    views = session_ground_truth(session, truth.T_turntable_obj)
+    cuboid = np.array(config["cuboid_points_m"])
+    for image, K, _, T_cam_obj in views:
+        mask = cv2.imread(str(session / "masks" / image.name), cv2.IMREAD_GRAYSCALE) > 0
+        u, v = np.round(project(K, T_cam_obj, cuboid[8:])[0]).astype(int)
+        assert mask[v, u]  # the true centroid falls on the object
+    with pytest.raises(ContractError, match="T_turntable_obj"):
+        evaluate_session(out, session)
+    on_plate = evaluate_session(out, session, T_turntable_obj=truth.T_turntable_obj)
+    assert on_plate["instances"] == on_plate["views"] == 3
 
 
 def test_cli_train_and_bad_input(dataset, tmp_path):

@@ -269,17 +269,25 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from n2d_dope.evaluate import evaluate
+    from n2d_common.contracts import read_manifest
+    from n2d_dope.evaluate import evaluate, evaluate_session
 
-    r = evaluate(args.model, args.dataset, name=args.name, precision=args.precision, max_frames=args.frames,
-                 progress=_progress_bar("evaluate"))
-    print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['frames']} frames ({args.precision})")
+    test = read_manifest(args.test) if args.test.is_dir() else None
+    if test is not None and test["kind"] == "capture_session":
+        name = args.name or "turntable"
+        r = evaluate_session(args.model, args.test, object_model_dir=args.object_model, name=name,
+                             precision=args.precision, progress=_progress_bar("evaluate"))
+    else:
+        name = args.name or "synthetic"
+        r = evaluate(args.model, args.test, name=name, precision=args.precision, max_frames=args.frames,
+                     progress=_progress_bar("evaluate"))
+    print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['images']} images ({args.precision})")
     print(f"evaluate: ADD-S accuracy {100 * r['adds_accuracy_10pct']:.1f} %, ADD {100 * r['add_accuracy_10pct']:.1f} % "
           f"(10 % of the {r['diameter_mm']:.0f} mm diameter); AUC to 10 cm: ADD-S {100 * r['adds_auc_10cm']:.1f}, "
           f"ADD {100 * r['add_auc_10cm']:.1f}")
     print(f"evaluate: network {r['network_ms_mean']:.1f} ms, post-processing {r['postprocess_ms_mean']:.1f} ms "
           "per frame")
-    print(f"evaluate: wrote {args.model}/eval.json ({args.name}/{args.precision}) and eval_{args.name}.png")
+    print(f"evaluate: wrote {args.model}/eval.json ({name}/{args.precision}) and eval_{name}.png")
     return 0
 
 
@@ -397,15 +405,19 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p)
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("evaluate", help="measure a DOPE model: ADD / ADD-S accuracy and AUC on dataset frames",
-                       description="Run the model on every frame of a dataset it was not trained on and compare with "
-                       "the ground truth: ADD and ADD-S accuracy at 10 %% of the object diameter, AUC up to 10 cm, "
-                       "per-frame timings. Writes MODEL/eval.json (under NAME/PRECISION) and MODEL/eval_NAME.png.")
+    p = sub.add_parser("evaluate", help="measure a DOPE model: ADD / ADD-S accuracy and AUC on a test set",
+                       description="Run the model on a test set it was not trained on and compare with the ground "
+                       "truth: ADD and ADD-S accuracy at 10 %% of the object diameter, AUC up to 10 cm, per-frame "
+                       "timings. The test set is a dataset (n2d dataset with another seed) or a capture session (a "
+                       "turntable sweep at angles not used for the reconstruction, object not moved: ground truth "
+                       "from the board). Writes MODEL/eval.json (under NAME/PRECISION) and MODEL/eval_NAME.png.")
     p.add_argument("model", type=Path, help="DOPE model directory (from n2d train)")
-    p.add_argument("dataset", type=Path, help="test dataset directory (from n2d dataset, another seed)")
-    p.add_argument("--name", default="synthetic", help="name of this test set in eval.json")
+    p.add_argument("test", type=Path, help="test dataset or capture session directory")
+    p.add_argument("--name", help="name of this test set in eval.json (default: synthetic or turntable)")
     p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="which exported model to run")
-    p.add_argument("--frames", type=int, default=0, help="evaluate only the first N frames (0: all)")
+    p.add_argument("--frames", type=int, default=0, help="dataset: evaluate only the first N frames (0: all)")
+    p.add_argument("--object-model", type=Path, help="capture session: the object's model directory from n2d "
+                   "reconstruct (records where it stood on the plate; default: the model DOPE was trained on)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("sim", help="start the simulated world until Ctrl-C",

@@ -1,10 +1,13 @@
-"""Measure a DOPE model on held-out frames of an n2d dataset: ADD / ADD-S accuracy and AUC, timings, overlays.
+"""Measure a DOPE model: ADD / ADD-S accuracy and AUC, timings and overlays, on two kinds of test set.
 
-Ground truth comes from the dataset's BOP `scene_gt.json` (pose in mm) and model points from the dataset's copy
-of the object's model. Each true instance (at least `min_visibility` visible) is matched to the detection with
-the smallest ADD-S; a missed instance counts as an infinite error. Results go to `eval.json` in the DOPE model
-directory under the test set's name, and `eval_<name>.png` shows the detections (cuboid: red front, green rear)
-over the true cuboids (white).
+- Held-out synthetic frames: an n2d dataset rendered with another seed; ground truth from its BOP `scene_gt.json`,
+  model points from the dataset's copy of the model.
+- The views of a capture session: a real turntable sweep; ground truth from the ChArUco board's camera poses and
+  where the object stands on the plate.
+
+Each true instance is matched to the detection with the smallest ADD-S; a missed instance counts as an infinite
+error. Results go to `eval.json` in the DOPE model directory under NAME/PRECISION, and `eval_NAME.png` shows the
+detections (cuboid: red front, green rear) over the true cuboids (white).
 """
 
 from __future__ import annotations
@@ -17,8 +20,8 @@ import cv2
 import numpy as np
 
 from n2d_common.contracts import atomic_write_json
-from n2d_common.errors import Cancelled
-from n2d_common.frames import make_T, project
+from n2d_common.errors import Cancelled, ContractError
+from n2d_common.frames import inv_T, make_T, project
 from n2d_common.images import contact_sheet, draw_axes, draw_cuboid, write_png
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_dope.data import open_dataset, read_rgb
@@ -61,28 +64,16 @@ def _overlay(rgb: np.ndarray, K: np.ndarray, truths: list[np.ndarray], detection
     return out
 
 
-def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "synthetic", precision: str = "fp32",
-             min_visibility: float = 0.25, max_frames: int = 0, progress: ProgressFn = no_progress,
-             cancel: threading.Event | None = None) -> dict:
-    """Evaluate the DOPE model on every frame of the dataset (or the first `max_frames`); returns the results
-    and records them in `<model_dir>/eval.json` under `<name>/<precision>`."""
-    model_dir = Path(model_dir)
-    model = DopeModel(model_dir, precision=precision)
-    info = open_dataset(dataset_dir)
-    manifest = json.loads((info.directory / "n2d.json").read_text())
-    obj_id = manifest["extra"]["models"][model.name]
-    points, diameter = model_points(info.directory / "models" / model.name)
-    frames = info.frames[:max_frames] if max_frames > 0 else info.frames
+def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: float, name: str,
+           progress: ProgressFn, cancel: threading.Event | None) -> tuple[dict, list[np.ndarray]]:
+    """Run the model over `items` ((rgb, K, true poses) per image), match each true instance to the detection
+    with the smallest ADD-S, and summarise; also returns overlays of up to OVERLAYS evenly spread images."""
     add_errors, adds_errors, network_s, post_s, overlays = [], [], [], [], []
-    pick = set(np.linspace(0, len(frames) - 1, min(OVERLAYS, len(frames))).round().astype(int).tolist())
+    pick = set(np.linspace(0, total - 1, min(OVERLAYS, total)).round().astype(int).tolist())
     eta = Eta()
-    for i, frame in enumerate(frames):
+    for i, (rgb, K, truths) in enumerate(items):
         if cancel is not None and cancel.is_set():
             raise Cancelled("evaluation cancelled", "run it again")
-        camera = json.loads((frame.chunk / "scene_camera.json").read_text())[str(frame.frame_id)]
-        K = np.array(camera["cam_K"], dtype=float).reshape(3, 3)
-        rgb = read_rgb(frame.image)
-        truths = _ground_truth(frame, obj_id, min_visibility)
         detections = model.detect(rgb, K)
         network_s.append(model.timing.network)
         post_s.append(model.timing.postprocess)
@@ -101,16 +92,98 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
             frame_errors.append(err_s)
         if i in pick:
             overlays.append(_overlay(rgb, K, truths, detections, model.cuboid_m, frame_errors))
-        progress(Progress((i + 1) / len(frames), "evaluating", eta((i + 1) / len(frames)),
-                          f"frame {i + 1}/{len(frames)}"))
+        progress(Progress((i + 1) / total, f"evaluating {name}", eta((i + 1) / total), f"image {i + 1}/{total}"))
     result = summarize(add_errors, adds_errors, diameter)
-    result.update({"frames": len(frames), "precision": precision, "dataset": str(info.directory),
-                   "min_visibility": min_visibility, "network_ms_mean": 1000 * float(np.mean(network_s)),
-                   "postprocess_ms_mean": 1000 * float(np.mean(post_s))})
+    result.update({"images": total, "precision": model.precision,
+                   "network_ms_mean": 1000 * float(np.mean(network_s)) if network_s else None,
+                   "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None})
+    return result, overlays
+
+
+def _record(model_dir: Path, name: str, result: dict, overlays: list[np.ndarray]) -> None:
+    """Store `result` in eval.json under NAME/PRECISION and the overlays as eval_NAME.png."""
     if overlays:
         write_png(model_dir / f"eval_{name}.png", contact_sheet(overlays, thumb_width=min(480, overlays[0].shape[1])))
     path = model_dir / "eval.json"
     results = json.loads(path.read_text()) if path.is_file() else {}
-    results[f"{name}/{precision}"] = result
+    results[f"{name}/{result['precision']}"] = result
     atomic_write_json(path, results)
+
+
+def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "synthetic", precision: str = "fp32",
+             min_visibility: float = 0.25, max_frames: int = 0, progress: ProgressFn = no_progress,
+             cancel: threading.Event | None = None) -> dict:
+    """Evaluate the DOPE model on every frame of the dataset (or the first `max_frames`); returns the results
+    and records them in `<model_dir>/eval.json` under `<name>/<precision>`."""
+    model_dir = Path(model_dir)
+    model = DopeModel(model_dir, precision=precision)
+    info = open_dataset(dataset_dir)
+    manifest = json.loads((info.directory / "n2d.json").read_text())
+    if model.name not in manifest["extra"]["models"]:
+        raise ContractError(f"{info.directory} does not show {model.name}", "evaluate on a dataset of that object")
+    obj_id = manifest["extra"]["models"][model.name]
+    points, diameter = model_points(info.directory / "models" / model.name)
+    frames = info.frames[:max_frames] if max_frames > 0 else info.frames
+
+    def items():
+        for frame in frames:
+            camera = json.loads((frame.chunk / "scene_camera.json").read_text())[str(frame.frame_id)]
+            K = np.array(camera["cam_K"], dtype=float).reshape(3, 3)
+            yield read_rgb(frame.image), K, _ground_truth(frame, obj_id, min_visibility)
+
+    result, overlays = _score(model, items(), len(frames), points, diameter, name, progress, cancel)
+    result.update({"frames": len(frames), "dataset": str(info.directory), "min_visibility": min_visibility})
+    _record(model_dir, name, result, overlays)
+    return result
+
+
+def session_ground_truth(session_dir: str | Path, T_turntable_obj: np.ndarray) -> list[tuple]:
+    """(image path, K, distortion, T_cam_obj) of every posed view of a capture session, for an object standing
+    at `T_turntable_obj` on the plate."""
+    from n2d_capture.session import read_session
+
+    session = read_session(session_dir)
+    views = [(v.image, session.K, session.dist, inv_T(v.T_turntable_cam) @ T_turntable_obj)
+             for v in session.views if v.T_turntable_cam is not None]
+    if not views:
+        raise ContractError(f"{session_dir} has no posed views", "capture with the board in view")
+    return views
+
+
+def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turntable_obj: np.ndarray | None = None,
+                     object_model_dir: str | Path | None = None, name: str = "turntable", precision: str = "fp32",
+                     progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
+    """Evaluate on the views of a capture session: a real-world test set whose ground truth is the camera pose
+    from the ChArUco board composed with where the object stands on the plate.
+
+    `T_turntable_obj` (4 x 4, model frame -> turntable frame, metres) defaults to the one the object's
+    reconstructed model records in its manifest (`n2d reconstruct` writes it); `object_model_dir` (the model
+    whose points ADD uses) defaults to the model the DOPE network was trained on. Capture the test sweep at
+    angles not used for the reconstruction, without moving the object.
+    """
+    model_dir = Path(model_dir)
+    model = DopeModel(model_dir, precision=precision)
+    object_dir = Path(object_model_dir or model.config.get("model_dir") or "")
+    if not (object_dir / "models_info.json").is_file():
+        raise ContractError(f"no object model at {object_dir}", "pass the object's model directory")
+    if T_turntable_obj is None:
+        manifest = object_dir / "n2d.json"
+        extra = json.loads(manifest.read_text()).get("extra", {}) if manifest.is_file() else {}
+        stored = extra.get("T_turntable_obj")
+        if stored is None:
+            raise ContractError(f"{object_dir} does not record where the object stood on the plate (T_turntable_obj)",
+                                "evaluate with the model n2d reconstruct made from this object's capture")
+        T_turntable_obj = np.array(stored, dtype=float)
+    views = session_ground_truth(session_dir, T_turntable_obj)
+    points, diameter = model_points(object_dir)
+
+    def items():
+        for image, K, dist, T_cam_obj in views:
+            rgb = read_rgb(image)
+            yield (cv2.undistort(rgb, K, dist) if np.any(dist) else rgb), K, [T_cam_obj]
+
+    result, overlays = _score(model, items(), len(views), points, diameter, name, progress, cancel)
+    result.update({"views": len(views), "session": str(Path(session_dir).absolute()),
+                   "ground_truth": "board camera poses composed with T_turntable_obj"})
+    _record(model_dir, name, result, overlays)
     return result
