@@ -68,6 +68,13 @@ def dope_loss(outputs, beliefs: torch.Tensor, affinities: torch.Tensor) -> torch
                for b, a in zip(out_beliefs, out_affinities))
 
 
+def learning_rate(cfg: TrainConfig, done: float) -> float:
+    """Cosine decay from `cfg.lr` to `cfg.lr_final_fraction * cfg.lr` as the run goes from 0 to 1 done (the larger of
+    the fraction of steps and of `max_minutes`, so a time-limited run also ends annealed)."""
+    f = cfg.lr_final_fraction
+    return cfg.lr * (f + (1 - f) * 0.5 * (1 + math.cos(math.pi * min(1.0, done))))
+
+
 def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: int):
     """Yield (index, stacked batch) from batch `start` on, loading the next batch in a thread meanwhile."""
     def load(b: int):
@@ -111,18 +118,15 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
         opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
         steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
         total = cfg.epochs * steps_per_epoch
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: cfg.lr_final_fraction + (1 - cfg.lr_final_fraction)
-                                                  * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)))
         pos = {"step": 0, "elapsed_s": 0.0, "losses": []}
         if state is not None:
             net.load_state_dict(state["model"])
             opt.load_state_dict(state["optimizer"])
-            sched.load_state_dict(state["scheduler"])
             pos = state["position"]
 
         def save() -> None:
             atomic_torch_save({"model": net.state_dict(), "optimizer": opt.state_dict(),
-                               "scheduler": sched.state_dict(), "position": pos, "identity": identity}, ckpt_path)
+                               "position": pos, "identity": identity}, ckpt_path)
 
         samples = DopeSamples(info, train_frames, name, cfg, augment=True)
         eta, t_start, last_save = Eta(), time.monotonic() - pos["elapsed_s"], time.monotonic()
@@ -135,6 +139,8 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
             order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
             epoch_losses = []
             for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
+                for group in opt.param_groups:
+                    group["lr"] = learning_rate(cfg, max(pos["step"] / total, pos["elapsed_s"] / limit_s))
                 loss = dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device))
                 if not torch.isfinite(loss):
                     raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
@@ -142,7 +148,6 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-                sched.step()
                 pos["step"] += 1
                 pos["elapsed_s"] = time.monotonic() - t_start
                 epoch_losses.append(loss.item())
