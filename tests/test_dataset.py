@@ -90,6 +90,24 @@ def test_dope_corner_order(dataset):
             assert len(obj["keypoint_visibility"]) == 9 and set(obj["keypoint_visibility"]) <= {0, 1}
 
 
+def test_nvlabs_dope_loader_reads_it(dataset):
+    """What NVlabs' DOPE training scripts read, read the way they read it: per image objects[].class,
+    projected_cuboid (9 points: nvisii style, centroid last), location, quaternion_xyzw; next to the images
+    _camera_settings.json (intrinsics) and _object_settings.json (cuboid_dimensions, cm)."""
+    models = {m.name: m for m in load_models(MODELS)}
+    for chunk, im, _, _, _, K in frames(dataset):
+        data = json.loads((chunk / "rgb" / f"{im:06d}.json").read_text())
+        camera = json.loads((chunk / "rgb" / "_camera_settings.json").read_text())["camera_settings"][0]
+        intrinsics = camera["intrinsic_settings"]
+        assert [intrinsics[k] for k in ("fx", "fy", "cx", "cy")] == [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        settings = json.loads((chunk / "rgb" / "_object_settings.json").read_text())
+        for info in data["objects"]:
+            assert len(info["projected_cuboid"]) == 9 and len(info["location"]) == 3
+            assert len(info["quaternion_xyzw"]) == 4
+            dims = next(o["cuboid_dimensions"] for o in settings["exported_objects"] if o["class"] == info["class"])
+            np.testing.assert_allclose(np.array(dims) / 100.0, models[info["class"]].size_m)
+
+
 def test_resume_after_cancel_is_reproducible(dataset, tmp_path):
     """Cancelled after a frame, then resumed: the same frames as one uninterrupted run of the same config."""
     out = tmp_path / "ds"

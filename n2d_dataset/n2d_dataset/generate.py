@@ -89,6 +89,8 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
         writer.write_models(root, models)
         writer.write_camera(root, cfg.camera.K(), cfg.camera.width, cfg.camera.height)
         if cfg.annotate:
+            writer.write_ndds_settings(root, models, cfg.camera.K(), cfg.camera.width, cfg.camera.height)
+        if cfg.annotate:
             write_contact_sheet(root, cfg.frames, cfg.chunk_size, cfg.render.rgb_format, seed=cfg.seed)
         summary = {"frames": cfg.frames, "instances": totals["instances"], "resumed_frames": done,
                    "wall_s": round(time.perf_counter() - t_start, 2), "phase_seconds": totals["seconds"],

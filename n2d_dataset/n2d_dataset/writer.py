@@ -8,6 +8,8 @@ Layout (BOP, as bop_toolkit's docs/bop_datasets_format.md describes it):
   train_pbr/CCCCCC/depth/IIIIII.png  uint16, depth_mm = value * depth_scale (0.1 mm steps, 0: no surface)
   train_pbr/CCCCCC/mask/IIIIII_KKKKKK.png, mask_visib/...  full and visible silhouette of instance K
   train_pbr/CCCCCC/scene_gt.json, scene_camera.json, scene_gt_info.json
+  train_pbr/CCCCCC/rgb/_camera_settings.json, _object_settings.json   NDDS files the NVlabs DOPE training
+                                     scripts read next to the images (intrinsics; cuboid_dimensions in cm)
 A frame's files are written first and its record (records/FFFFFF.json) last, atomically: a frame without
 a record is re-rendered on resume. The records become the chunk JSON files at the end, then go.
 """
@@ -115,3 +117,20 @@ def write_camera(root: Path, K: np.ndarray, width: int, height: int) -> None:
     atomic_write_json(root / "camera.json", {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "fx": float(K[0, 0]),
                                              "fy": float(K[1, 1]), "width": width, "height": height,
                                              "depth_scale": DEPTH_SCALE})
+
+
+def write_ndds_settings(root: Path, models: list[Model], K: np.ndarray, width: int, height: int) -> None:
+    """The NDDS `_camera_settings.json` and `_object_settings.json` in every chunk's rgb/ folder, so NVlabs'
+    DOPE training scripts can read the dataset as it is (cuboid dimensions in cm, as NDDS writes them)."""
+    camera = {"camera_settings": [{
+        "name": "n2d", "horizontal_fov": float(np.degrees(2 * np.arctan(width / (2 * K[0, 0])))),
+        "intrinsic_settings": {"resX": width, "resY": height, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+                               "cx": float(K[0, 2]), "cy": float(K[1, 2]), "s": 0},
+        "captured_image_size": {"width": width, "height": height}}]}
+    objects = {"exported_object_classes": [m.name for m in models],
+               "exported_objects": [{"class": m.name, "segmentation_class_id": m.obj_id,
+                                     "fixed_model_transform": np.eye(4).tolist(),
+                                     "cuboid_dimensions": (100.0 * m.size_m).tolist()} for m in models]}
+    for rgb in sorted((root / "train_pbr").glob("*/rgb")):
+        atomic_write_json(rgb / "_camera_settings.json", camera)
+        atomic_write_json(rgb / "_object_settings.json", objects)
