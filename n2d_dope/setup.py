@@ -21,6 +21,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
+            "dope_node = n2d_dope.nodes.dope_node:main",
         ],
     },
 )

@@ -69,7 +69,10 @@ def declare_config(node: Node, cls: type[C]) -> C:
         value = _param_value(default)
         if value is None or (isinstance(value, list) and not value):
             continue  # ROS parameters cannot be None or untyped empty lists: keep the dataclass default
-        param = node.declare_parameter(name, value, ParameterDescriptor(description=doc))
+        # A float parameter given as a whole number (`rate_hz:=5` from a launch file) arrives as an integer,
+        # which rclpy refuses for a float parameter; let those through and have from_dict convert them.
+        floats = isinstance(value, float) or (isinstance(value, list) and any(isinstance(v, float) for v in value))
+        param = node.declare_parameter(name, value, ParameterDescriptor(description=doc, dynamic_typing=floats))
         node_dict = data
         *sections, leaf = name.split(".")
         for section in sections:

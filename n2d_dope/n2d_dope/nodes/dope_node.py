@@ -1,0 +1,252 @@
+"""dope_node: live 6D poses of the trained objects in a camera stream (DOPE models on ONNX Runtime).
+
+Subscribes to any camera driver's `image_topic` + `camera_info_topic` (undistorted images) with live-video QoS:
+depth 1, best effort, so a detector slower than the camera drops stale frames instead of queueing them. The
+subscription callbacks only keep the newest image and CameraInfo; one worker thread runs every model on the
+newest image (at most `max_rate_hz` times a second) and publishes, under the node's namespace:
+`dope/pose_<object>` (PoseStamped, the best detection of each object, only when found), `dope/detections`
+(Detection3DArray, one per processed frame, empty when nothing was found), `dope/overlay` (rgb8, the fitted
+cuboids and object axes drawn) and `dope/latency_ms` (Float64, image stamp to published detections). Poses are
+in the camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when
+set. Every `log_period_s` it logs frames received, frames processed and the latency.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from geometry_msgs.msg import PoseStamped, PoseWithCovariance, Vector3
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Float64, Header
+
+from n2d_common.errors import ConfigError, N2DError
+from n2d_common.frames import project, transform_points
+from n2d_common.images import draw_axes, draw_cuboid
+from n2d_common.ros import (
+    PUBLISH_QOS,
+    SENSOR_QOS,
+    declare_config,
+    image_msg,
+    image_rgb,
+    pose_msg,
+    run_node,
+    stamp_seconds,
+)
+from n2d_dope.config import DetectConfig
+from n2d_dope.infer import Detection, DopeModel
+from n2d_interfaces.msg import (
+    BoundingBox3D,
+    Detection3D,
+    Detection3DArray,
+    ObjectHypothesis,
+    ObjectHypothesisWithPose,
+)
+
+MODELS_DOC = ("DOPE model directories (from `n2d train`), one per object: a string array, or one string of comma- "
+              "or space-separated directories.")
+
+
+@dataclass
+class DopeNodeConfig:
+    """Parameters of dope_node, besides `models` (a string or a string array, declared by the node itself)."""
+
+    precision: Literal["fp32", "int8"] = "fp32"
+    """ONNX model of each directory to run: fp32, or int8 (statically quantised; faster on most CPUs)."""
+    threads: int = 0
+    """ONNX Runtime threads per model (0: all cores)."""
+    image_topic: str = "camera/image_raw"
+    """Camera images, undistorted (rgb8, bgr8, mono8, ...)."""
+    camera_info_topic: str = "camera/camera_info"
+    """Intrinsics of the images (K)."""
+    camera_frame: str = ""
+    """frame_id of the published poses; empty: the image header's."""
+    max_rate_hz: float = 0.0
+    """Process at most this many frames per second; 0: every frame the detector keeps up with."""
+    publish_overlay: bool = True
+    """Publish `dope/overlay`: the image with the detected cuboids and axes drawn."""
+    log_period_s: float = 10.0
+    """Log frames received, frames processed and the latency this often (seconds); 0: never."""
+    detect: DetectConfig = field(default_factory=DetectConfig)
+    """Turning the network's maps into poses."""
+
+    def __post_init__(self):
+        for name in ("threads", "max_rate_hz", "log_period_s"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+def model_dirs(value: str | list[str]) -> list[str]:
+    """The `models` parameter as a list: array entries as given, a string split at commas and whitespace."""
+    items = re.split(r"[,\s]+", value) if isinstance(value, str) else value
+    return [d for d in items if d]
+
+
+def pose_topic(object_name: str) -> str:
+    """`dope/pose_<object>`, with characters a topic name cannot hold replaced by `_`."""
+    return "dope/pose_" + re.sub(r"\W", "_", object_name, flags=re.ASCII)
+
+
+def pose_stamped(det: Detection, header: Header) -> PoseStamped:
+    """The pose of a detection's object frame in the camera frame."""
+    return PoseStamped(header=header, pose=pose_msg(det.T_cam_obj))
+
+
+def detection3d(det: Detection, cuboid_m: np.ndarray, header: Header) -> Detection3D:
+    """A detection as vision_msgs has it: the hypothesis (object, score, pose of the object frame) and the fitted
+    cuboid as bounding box (pose of its centre, edge lengths). `cuboid_m`: the model's 9 x 3 keypoints, an
+    axis-aligned box in the object frame (8 corners, then the centre)."""
+    T_cam_box = det.T_cam_obj.copy()
+    T_cam_box[:3, 3] = transform_points(det.T_cam_obj, cuboid_m[8:9])[0]
+    sx, sy, sz = (float(v) for v in np.ptp(cuboid_m[:8], axis=0))
+    hypothesis = ObjectHypothesisWithPose(hypothesis=ObjectHypothesis(class_id=det.object, score=float(det.score)),
+                                          pose=PoseWithCovariance(pose=pose_msg(det.T_cam_obj)))
+    return Detection3D(header=header, results=[hypothesis],
+                       bbox=BoundingBox3D(center=pose_msg(T_cam_box), size=Vector3(x=sx, y=sy, z=sz)))
+
+
+def draw_overlay(rgb: np.ndarray, K: np.ndarray, detections: list[Detection],
+                 cuboids: dict[str, np.ndarray]) -> np.ndarray:
+    """A copy of `rgb` with each detection's fitted cuboid, object axes and label drawn."""
+    out = rgb.copy()
+    thickness = max(1, round(min(out.shape[:2]) / 240))
+    for det in detections:
+        cuboid = cuboids[det.object]
+        corners = project(K, det.T_cam_obj, cuboid[:8])
+        corners[transform_points(det.T_cam_obj, cuboid[:8])[:, 2] <= 0] = np.nan  # behind the camera
+        draw_cuboid(out, corners, thickness=thickness)
+        draw_axes(out, K, det.T_cam_obj, 0.5 * float(np.ptp(cuboid[:8], axis=0).max()), thickness)
+        if np.isfinite(corners[0]).all():
+            cv2.putText(out, f"{det.object} {det.score:.2f}", tuple(np.round(corners[0]).astype(int)),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.4 * thickness, (255, 255, 0), thickness, cv2.LINE_AA)
+    return out
+
+
+class DopeNode(Node):
+    NAME = "dope"
+
+    def __init__(self):
+        super().__init__(self.NAME)
+        models = self.declare_parameter("models", "", ParameterDescriptor(description=MODELS_DOC, dynamic_typing=True))
+        self.cfg = declare_config(self, DopeNodeConfig)
+        dirs = model_dirs(models.value)
+        if not dirs:
+            raise ConfigError("dope_node: no DOPE models given",
+                              "set the parameter models, e.g. n2d launch dope models:=/path/to/dope_model")
+        self.models = [DopeModel(d, precision=self.cfg.precision, cfg=self.cfg.detect, threads=self.cfg.threads)
+                       for d in dirs]
+        self.cuboids = {m.name: m.cuboid_m for m in self.models}
+        if len(self.cuboids) < len(self.models):
+            names = ", ".join(m.name for m in self.models)
+            raise ConfigError(f"dope_node: two models detect the same object ({names})", "give one model per object")
+
+        self.pose_pubs = {name: self.create_publisher(PoseStamped, pose_topic(name), PUBLISH_QOS)
+                          for name in self.cuboids}
+        self.detections_pub = self.create_publisher(Detection3DArray, "dope/detections", PUBLISH_QOS)
+        self.latency_pub = self.create_publisher(Float64, "dope/latency_ms", PUBLISH_QOS)
+        self.overlay_pub = (self.create_publisher(Image, "dope/overlay", PUBLISH_QOS) if self.cfg.publish_overlay
+                            else None)
+
+        self._new = threading.Condition()
+        self._image: Image | None = None
+        self._info: CameraInfo | None = None
+        self._running = True
+        self._received = 0
+        self._latencies_ms: list[float] = []
+        self.create_subscription(CameraInfo, self.cfg.camera_info_topic, self.on_camera_info, SENSOR_QOS)
+        image_sub = self.create_subscription(Image, self.cfg.image_topic, self.on_image, SENSOR_QOS)
+        self._worker = threading.Thread(target=self._work, daemon=True)
+        self._worker.start()
+        if self.cfg.log_period_s > 0:
+            self._log_since = time.monotonic()
+            self.create_timer(self.cfg.log_period_s, self.on_log_timer)
+        self.get_logger().info(f"dope ready: {', '.join(self.cuboids)} ({self.cfg.precision}) on "
+                               f"{image_sub.topic_name}")
+
+    def on_image(self, msg: Image) -> None:
+        with self._new:
+            self._image = msg
+            self._received += 1
+            self._new.notify()
+
+    def on_camera_info(self, msg: CameraInfo) -> None:
+        with self._new:
+            self._info = msg
+            self._new.notify()
+
+    def on_log_timer(self) -> None:
+        with self._new:
+            received, latencies, info = self._received, self._latencies_ms, self._info
+            self._received, self._latencies_ms = 0, []
+        now = time.monotonic()
+        dt, self._log_since = now - self._log_since, now
+        line = f"{received / dt:.1f} frames/s in, {len(latencies) / dt:.1f} processed"
+        if latencies:
+            line += f", latency {np.mean(latencies):.0f} ms mean, {np.max(latencies):.0f} ms max"
+        if received and info is None:
+            line += f"; no camera_info yet on {self.cfg.camera_info_topic}"
+        self.get_logger().info(line)
+
+    def _work(self) -> None:
+        """Run the models on the newest frame, over and over, until the node is destroyed."""
+        period_s = 1.0 / self.cfg.max_rate_hz if self.cfg.max_rate_hz > 0 else 0.0
+        while True:
+            with self._new:
+                self._new.wait_for(lambda: not self._running or (self._image is not None and self._info is not None))
+                if not self._running:
+                    return
+                image, info, self._image = self._image, self._info, None
+            start = time.monotonic()
+            try:
+                self.process(image, info)
+            except Exception as exc:  # one bad frame must not stop a live detector: say why and go on
+                if not self.context.ok():
+                    return
+                self.get_logger().error(f"frame skipped: {exc}", throttle_duration_sec=5.0)
+            with self._new:
+                self._new.wait_for(lambda: not self._running, timeout=start + period_s - time.monotonic())
+
+    def process(self, image: Image, info: CameraInfo) -> None:
+        """Detect every object in one image and publish the results."""
+        if info.width and (info.width, info.height) != (image.width, image.height):
+            raise N2DError(f"camera_info is for {info.width}x{info.height} images, the image is "
+                           f"{image.width}x{image.height}", "pair the image topic with its own camera_info")
+        rgb = image_rgb(image)
+        K = np.array(info.k, dtype=float).reshape(3, 3)
+        header = Header(stamp=image.header.stamp, frame_id=self.cfg.camera_frame or image.header.frame_id)
+        found = [det for model in self.models for det in model.detect(rgb, K)]
+        for name, pub in self.pose_pubs.items():
+            best = max((det for det in found if det.object == name), key=lambda det: det.score, default=None)
+            if best is not None:
+                pub.publish(pose_stamped(best, header))
+        self.detections_pub.publish(Detection3DArray(
+            header=header, detections=[detection3d(det, self.cuboids[det.object], header) for det in found]))
+        latency_ms = (self.get_clock().now().nanoseconds * 1e-9 - stamp_seconds(image.header.stamp)) * 1e3
+        self.latency_pub.publish(Float64(data=latency_ms))
+        with self._new:
+            self._latencies_ms.append(latency_ms)
+        if self.overlay_pub is not None:
+            self.overlay_pub.publish(image_msg(draw_overlay(rgb, K, found, self.cuboids), "rgb8", header.stamp,
+                                               header.frame_id))
+
+    def destroy_node(self) -> None:
+        with self._new:
+            self._running = False
+            self._new.notify_all()
+        self._worker.join(timeout=10.0)
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    run_node(DopeNode, args)
+
+
+if __name__ == "__main__":
+    main()
