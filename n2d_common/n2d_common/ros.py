@@ -18,7 +18,8 @@ import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.action import ActionClient
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -84,22 +85,54 @@ def declare_config(node: Node, cls: type[C]) -> C:
         raise ConfigError(f"parameter {exc.message}", exc.hint) from None
 
 
-def run_goal(goal_handle, result, job: Callable[[], None], logger) -> Any:
-    """Run `job()` for an action goal and end the goal: succeeded when it returns (with result.success set),
+class JobActionServer:
+    """An action server that runs one long job at a time, shared by the stage nodes.
+
+    A goal is refused while a job runs or when `accept(goal)` is false. `run(goal, result, progress, cancel)`
+    does the work and fills the result; its Progress reports become feedback through `feedback(progress)`, and
+    a cancel request sets its `cancel` event. The goal ends succeeded (result.success) when `run` returns,
     canceled on Cancelled, aborted on N2DError or ValueError (logged); result.message holds the reason.
-    `job` fills in the other result fields."""
-    try:
-        job()
-        result.success = True
-        goal_handle.succeed()
-    except Cancelled as exc:
-        result.message = str(exc)
-        goal_handle.canceled()
-    except (N2DError, ValueError) as exc:
-        result.message = str(exc)
-        logger.error(result.message)
-        goal_handle.abort()
-    return result
+    """
+
+    def __init__(self, node: Node, action_type, name: str, run: Callable, *, accept: Callable[[Any], bool],
+                 feedback: Callable[[Any], Any]):
+        self.cancel = threading.Event()
+        """Set by a cancel request (and on shutdown); jobs watch it."""
+        self._busy = threading.Lock()
+        self._node, self._type, self._run, self._accept, self._feedback = node, action_type, run, accept, feedback
+        self._server = ActionServer(node, action_type, name, execute_callback=self._execute,
+                                    goal_callback=self._on_goal, cancel_callback=self._on_cancel,
+                                    callback_group=ReentrantCallbackGroup())
+
+    def _on_goal(self, goal):
+        return GoalResponse.ACCEPT if self._accept(goal) and not self._busy.locked() else GoalResponse.REJECT
+
+    def _on_cancel(self, _goal_handle):
+        self.cancel.set()
+        return CancelResponse.ACCEPT
+
+    def _execute(self, goal_handle):
+        result = self._type.Result()
+        with self._busy:
+            self.cancel.clear()
+            try:
+                self._run(goal_handle.request, result,
+                          lambda p: goal_handle.publish_feedback(self._feedback(p)), self.cancel)
+                result.success = True
+                goal_handle.succeed()
+            except Cancelled as exc:
+                result.message = str(exc)
+                goal_handle.canceled()
+            except (N2DError, ValueError) as exc:
+                result.message = str(exc)
+                self._node.get_logger().error(result.message)
+                goal_handle.abort()
+        return result
+
+    def destroy(self) -> None:
+        """Tell a running job to stop and remove the server."""
+        self.cancel.set()
+        self._server.destroy()
 
 
 def stamp_msg(t_s: float) -> Time:

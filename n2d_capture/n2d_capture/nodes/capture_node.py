@@ -10,19 +10,16 @@ Parameters are the fields of `CaptureConfig` (sweep, board, masks, intrinsics) p
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import cv2
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
 from n2d_capture.capture import CaptureConfig, capture
 from n2d_capture.nodes.ros_io import RosFrameSource, RosRotator
 from n2d_common.config import from_dict, merge, parse_mapping, to_dict
 from n2d_common.progress import Progress
-from n2d_common.ros import declare_config, image_msg, run_goal, run_node, stamp_msg
+from n2d_common.ros import JobActionServer, declare_config, image_msg, run_node, stamp_msg
 from n2d_interfaces.action import Capture
 
 
@@ -52,20 +49,10 @@ class CaptureNode(Node):
         self.cfg = declare_config(self, CaptureNodeConfig)
         self.camera = RosFrameSource(self, self.cfg.image_topic, self.cfg.camera_info_topic,
                                      self.cfg.use_header_stamp)
-        self._busy = threading.Lock()
-        self._cancel = threading.Event()
-        self.rotator = RosRotator(self, self.cfg.rotate_action, self._cancel)
-        self.server = ActionServer(self, Capture, "capture", execute_callback=self.execute_capture,
-                                   goal_callback=self.on_goal, cancel_callback=self.on_cancel,
-                                   callback_group=ReentrantCallbackGroup())
+        self.jobs = JobActionServer(self, Capture, "capture", self.run_goal, accept=lambda g: bool(g.session_dir),
+                                    feedback=self._feedback)
+        self.rotator = RosRotator(self, self.cfg.rotate_action, self.jobs.cancel)
         self.get_logger().info(f"capture ready: images from {self.camera.topic}")
-
-    def on_goal(self, goal: Capture.Goal) -> GoalResponse:
-        return GoalResponse.REJECT if self._busy.locked() or not goal.session_dir else GoalResponse.ACCEPT
-
-    def on_cancel(self, _goal_handle) -> CancelResponse:
-        self._cancel.set()
-        return CancelResponse.ACCEPT
 
     def _goal_config(self, goal: Capture.Goal) -> CaptureConfig:
         data = to_dict(self.cfg.capture)
@@ -73,34 +60,25 @@ class CaptureNode(Node):
             data["sweep"]["views"] = goal.views
         return from_dict(CaptureConfig, merge(data, parse_mapping(goal.config_yaml, "goal config_yaml")))
 
-    def execute_capture(self, goal_handle) -> Capture.Result:
-        goal = goal_handle.request
-        result = Capture.Result(session_dir=goal.session_dir)
-        with self._busy:
-            self._cancel.clear()
+    def _feedback(self, p: Progress) -> Capture.Feedback:
+        fb = Capture.Feedback(progress=p.fraction, stage=p.stage, eta_s=p.eta_s, view=p.info.get("view", 0),
+                              views_total=p.info.get("views", 0))
+        if "image" in p.info:
+            rgb = p.info["image"]
+            h = round(rgb.shape[0] * self.cfg.preview_width / rgb.shape[1])
+            small = cv2.resize(rgb, (self.cfg.preview_width, h), interpolation=cv2.INTER_AREA)
+            fb.last_image = image_msg(small, "rgb8", stamp_msg(0.0), "")
+        return fb
 
-            def feedback(p: Progress) -> None:
-                fb = Capture.Feedback(progress=p.fraction, stage=p.stage, eta_s=p.eta_s,
-                                      view=p.info.get("view", 0), views_total=p.info.get("views", 0))
-                if "image" in p.info:
-                    rgb = p.info["image"]
-                    h = round(rgb.shape[0] * self.cfg.preview_width / rgb.shape[1])
-                    small = cv2.resize(rgb, (self.cfg.preview_width, h), interpolation=cv2.INTER_AREA)
-                    fb.last_image = image_msg(small, "rgb8", stamp_msg(0.0), "")
-                goal_handle.publish_feedback(fb)
-
-            def job() -> None:
-                summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
-                                  empty_plate=goal.empty_plate, overwrite=goal.overwrite, progress=feedback,
-                                  cancel=self._cancel)
-                result.views_captured = summary["views"]
-                result.message = summary.get("message", "")
-
-            return run_goal(goal_handle, result, job, self.get_logger())
+    def run_goal(self, goal: Capture.Goal, result: Capture.Result, progress, cancel) -> None:
+        result.session_dir = goal.session_dir
+        summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
+                          empty_plate=goal.empty_plate, overwrite=goal.overwrite, progress=progress, cancel=cancel)
+        result.views_captured = summary["views"]
+        result.message = summary.get("message", "")
 
     def destroy_node(self) -> None:
-        self._cancel.set()
-        self.server.destroy()
+        self.jobs.destroy()
         super().destroy_node()
 
 
