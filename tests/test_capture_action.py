@@ -30,7 +30,7 @@ def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
             session = str(tmp_path / "session")
             results = []
             for empty in (True, False):
-                assert wait_future(lift.call_async(SetBool.Request(data=not empty)), 30).success
+                assert wait_future(lift.call_async(SetBool.Request(data=not empty)), 120).success
                 feedback = []
                 request = Capture.Goal(session_dir=session, views=VIEWS, empty_plate=empty,
                                        config_yaml="sweep: {frame_timeout_s: 60}")
