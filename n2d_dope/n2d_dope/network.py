@@ -97,7 +97,7 @@ LITE_STRIDE8_BLOCK, LITE_STRIDE16_BLOCK = 4, 10
 class LiteTrunk(nn.Module):
     """EfficientNet-Lite0 to stride 16, with the stride-16 features upsampled and fused into stride 8."""
 
-    def __init__(self, channels: int = 64, pretrained: bool = True):
+    def __init__(self, channels: int = 64, pretrained: bool = True, frozen_blocks: int = 0):
         super().__init__()
         self._conv_stem = nn.Conv2d(3, 32, 3, 2, padding=1, bias=False)
         self._bn0 = _bn(32)
@@ -110,6 +110,16 @@ class LiteTrunk(nn.Module):
             self.load_state_dict(_lite0_weights(), strict=False)
         self.fuse = nn.Sequential(nn.Conv2d(40 + 112, channels, 1, bias=False), nn.BatchNorm2d(channels),
                                   nn.ReLU(inplace=True))
+        self.frozen = [self._conv_stem, self._bn0, *self._blocks[:frozen_blocks]] if frozen_blocks else []
+        for module in self.frozen:
+            module.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> LiteTrunk:
+        """Train mode, except the frozen layers: their batch-norm statistics stay the pretrained ones."""
+        super().train(mode)
+        for module in self.frozen:
+            module.eval()
+        return self
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = functional.relu6(self._bn0(self._conv_stem(x)))
@@ -153,16 +163,18 @@ def stage(cin: int, cout: int, *, first: bool, mid: int, separable: bool) -> nn.
 
 
 class DopeNet(nn.Module):
-    """DOPE: trunk features, then `stages` pairs of (belief, affinity) heads with intermediate supervision."""
+    """DOPE: trunk features, then `stages` pairs of (belief, affinity) heads with intermediate supervision.
+    `frozen_blocks` (lite only): keep the stem and the first that many ImageNet blocks fixed while training."""
 
-    def __init__(self, backbone: str = "lite", stages: int = 6, pretrained: bool = True):
+    def __init__(self, backbone: str = "lite", stages: int = 6, pretrained: bool = True, frozen_blocks: int = 0):
         super().__init__()
         if backbone == "vgg":
             self.normalize, self.trunk, features = Normalize(IMAGENET_MEAN, IMAGENET_STD), vgg_trunk(), 128
             mid, separable = 128, False
         elif backbone == "lite":
             features = 64
-            self.normalize, self.trunk = Normalize(LITE_MEAN, LITE_STD), LiteTrunk(features, pretrained)
+            self.normalize = Normalize(LITE_MEAN, LITE_STD)
+            self.trunk = LiteTrunk(features, pretrained, frozen_blocks)
             mid, separable = 64, True
         else:
             raise ValueError(f"unknown backbone {backbone!r}: use vgg or lite")

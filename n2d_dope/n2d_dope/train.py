@@ -114,8 +114,8 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
         ckpt_path = stage.path / "checkpoint.pt"
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
-        net = DopeNet(cfg.backbone, cfg.stages, pretrained=state is None).to(device)
-        opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+        net = DopeNet(cfg.backbone, cfg.stages, pretrained=state is None, frozen_blocks=cfg.frozen_blocks).to(device)
+        opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
         steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
         total = cfg.epochs * steps_per_epoch
         pos = {"step": 0, "elapsed_s": 0.0, "losses": []}
