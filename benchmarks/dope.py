@@ -134,7 +134,8 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
         every = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         node.create_subscription(Detection3DArray, "/n2d/dope/detections",
                                  lambda m: latencies.append(time.time() - stamp_seconds(m.header.stamp)), every)
-        node.create_subscription(Image, "/n2d/camera/image_raw", lambda m: frames_in.append(1), every)
+        if replay is None:  # the camera's rate; a replay counts what it publishes
+            node.create_subscription(Image, "/n2d/camera/image_raw", lambda m: frames_in.append(1), every)
         image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS) if replay else None
         info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS) if replay else None
         deadline = time.monotonic() + 120
@@ -153,6 +154,7 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
                 stamp = stamp_msg(time.time())
                 info_pub.publish(camera_info_msg(K, rgb.shape[1], rgb.shape[0], stamp, "camera"))
                 image_pub.publish(image_msg(rgb, "rgb8", stamp, "camera"))
+                frames_in.append(1)
                 i += 1
                 time.sleep(max(0.0, t0 + i / 30.0 - time.monotonic()))
             else:
