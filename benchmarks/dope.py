@@ -69,7 +69,7 @@ def speed_rows(model: Path, test: Path, tmp: Path, runs: int) -> list[tuple[str,
     x = calibration[0]
     rows = []
     vgg = tmp / "vgg.onnx"
-    export_onnx(DopeNet("vgg", stages=6, pretrained=False), vgg, SIZE)
+    export_onnx(DopeNet("vgg", stages=6), vgg, SIZE)
     quantize_int8(vgg, tmp / "vgg_int8.onnx", calibration[:4])
     lite = DopeModel(model)
     for label, fp32, int8 in (("VGG-19 DOPE, 6 stages", vgg, tmp / "vgg_int8.onnx"),

