@@ -21,7 +21,7 @@ from n2d_dataset.generate import generate_dataset
 from n2d_dope.config import DetectConfig, TrainConfig
 from n2d_dope.data import DopeSamples, open_dataset, warp_points
 from n2d_dope.evaluate import evaluate_session, session_ground_truth
-from n2d_dope.infer import group_instances, solve_pose
+from n2d_dope.infer import DopeModel, group_instances, solve_pose
 from n2d_dope.metrics import add, add_s, auc, summarize
 from n2d_dope.network import DopeNet, parameter_count
 from n2d_dope.targets import make_targets, to_image, to_map
@@ -191,6 +191,11 @@ def test_cli_train_and_bad_input(dataset, tmp_path):
     assert again.returncode == 2 and "already exists" in again.stderr
     not_a_dataset = subprocess.run(cli + [str(out), str(tmp_path / "x")], capture_output=True, text=True)
     assert not_a_dataset.returncode == 2 and "not a dataset" in not_a_dataset.stderr
+    swapped = subprocess.run([sys.executable, "-m", "n2d.cli", "evaluate", str(dataset), str(out)],
+                             capture_output=True, text=True)
+    assert swapped.returncode == 2 and "not a dope model" in swapped.stderr
+    with pytest.raises(ConfigError, match="no int8 model"):
+        DopeModel(out, precision="int8")
     with pytest.raises(ConfigError, match="no object 'mug'"):
         train(dataset, tmp_path / "y", TrainConfig.preset("tiny"), object_name="mug")
     with pytest.raises(ConfigError, match="multiples of 16"):
