@@ -25,6 +25,7 @@ setup(
     entry_points={
         "console_scripts": [
             "n2d = n2d.cli:main",
+            "pipeline_node = n2d.nodes.pipeline_node:main",
         ],
     },
 )

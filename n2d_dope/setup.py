@@ -22,6 +22,7 @@ setup(
     entry_points={
         "console_scripts": [
             "dope_node = n2d_dope.nodes.dope_node:main",
+            "train_node = n2d_dope.nodes.train_node:main",
         ],
     },
 )

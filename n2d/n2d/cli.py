@@ -53,11 +53,24 @@ def cmd_demo(args) -> int:
     from n2d.demo import DemoConfig, run_demo
 
     cfg = _config(DemoConfig, args)
-    summary = run_demo(args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("demo"))
-    print(f"demo: {summary['views']} views in {summary['seconds']} s; driver vs simulator ground truth: "
-          f"max {summary['max_driver_vs_truth_deg']:.4f} deg")
-    print(f"demo: wrote {args.out}/ (contact_sheet.png, frames/, frames.json)")
+    s = run_demo(args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("demo"))
+    print(f"demo: {s['object']} in {s['seconds_total'] / 60:.1f} min; per stage: "
+          + ", ".join(f"{stage} {seconds:.0f} s" for stage, seconds in s["seconds"].items()))
+    for test, by_precision in s["evaluation"].items():
+        for precision, r in by_precision.items():
+            print(f"demo: {test} test set ({precision}): {_accuracy_line(r)}")
+    if s["live"]:
+        print(f"demo: live dope_node vs the simulator's ground truth ({s['live']['precision']}): "
+              f"{_accuracy_line(s['live'])}")
+    print(f"demo: wrote {s['run_dir']}/ (capture/, model/, dataset/, dope/, live/, run.json, demo.json)")
     return 0
+
+
+def _accuracy_line(r: dict) -> str:
+    median = r.get("adds_median_mm")
+    return (f"ADD-S {100 * r['adds_accuracy_10pct']:.1f} %, ADD {100 * r['add_accuracy_10pct']:.1f} % at 10 % of the "
+            f"{r['diameter_mm']:.0f} mm diameter; {r['detected']}/{r['instances']} found, median ADD-S "
+            + ("-" if median is None else f"{median:.1f} mm"))
 
 
 def _launch(name: str, pairs: list[str]) -> int:
@@ -299,13 +312,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     p = sub.add_parser("demo", help="run the whole job on the embedded simulated world (no hardware)",
-                       description="Bring up the simulated turntable world (Dynamixel servo emulated on a pty + "
-                       "rendered camera), sweep the plate through the real driver, and write a run directory "
-                       "with the frames and a contact sheet. Re-running a finished demo does nothing unless "
+                       description="Start the simulated turntable world (Dynamixel servo emulated on a pty + "
+                       "rendered camera) with every stage node, run the Pipeline action (empty-plate sweep, capture, "
+                       "test sweep, reconstruction, dataset, DOPE training, evaluation) into one run directory, then "
+                       "score dope_node's live poses against the simulator's ground truth. Ctrl-C and the same "
+                       "command continues from the last finished stage; a finished demo does nothing unless "
                        "--overwrite.")
     p.add_argument("out", nargs="?", type=Path, default=Path("n2d_runs/demo"),
                    help="run directory (default: n2d_runs/demo)")
-    p.add_argument("--overwrite", action="store_true", help="replace a finished run (only once the new one is done)")
+    p.add_argument("--overwrite", action="store_true", help="discard the run directory's results and start over")
     _add_config_options(p)
     p.set_defaults(func=cmd_demo)
 

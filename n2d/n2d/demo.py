@@ -1,27 +1,47 @@
-"""`n2d demo`: the main job on the embedded default world (simulated servo + camera + a sample object).
+"""`n2d demo`: the whole job on the embedded default world (simulated servo + camera + a sample object).
 
-Today it brings up the simulated world, turns the plate through the real Dynamixel driver
-(`dynamixel_sdk` on the emulated servo's pty), takes a fresh camera frame at each stop, checks the
-driver's angle against the simulator's ground truth, and writes a run directory with the frames
-and `contact_sheet.png`. The later stages (reconstruct, dataset, DOPE) join it as they land.
+It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and
+acts as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate
+sweep, puts the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset,
+training, evaluation, one progress display over all of them. Then the live check: `dope_node` runs the
+new model on the simulated camera while the plate turns to angles no sweep used, and each published
+pose is scored against the simulator's ground truth (ADD / ADD-S with the reconstructed model's
+points). Everything lands in one run directory; Ctrl-C at any stage and the same command continues
+from the last finished stage (the unfinished one resumes from its partial output).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from n2d.pipeline import EMPTY_PLATE, PipelineConfig, RunLayout, check_object_name
 from n2d_common.config import to_dict
-from n2d_common.contracts import atomic_write_json, read_manifest, stage_output
-from n2d_common.errors import DeviceError
-from n2d_common.images import contact_sheet, draw_mask_outline, write_png
+from n2d_common.contracts import atomic_write_json, read_manifest
+from n2d_common.errors import ContractError, DeviceError
+from n2d_common.frames import inv_T
+from n2d_common.images import contact_sheet, write_png
 from n2d_common.progress import Progress, ProgressFn, no_progress
+
+LIVE_DIR = "live"
+"""Where the live check writes, inside the run directory."""
+
+
+def _demo_pipeline() -> PipelineConfig:
+    # Sized for ~30 min on 2 CPU cores: the dataset renders at half size (the network's input size, so the
+    # live 640x480 frames are scaled by half for it) with 8 samples per pixel.
+    return PipelineConfig(views=24, test_views=8, frames=120, test_frames=16, train_minutes=8.0,
+                          dataset={"camera": {"width": 320, "height": 240, "focal_px": 300.0,
+                                              "distance_m": [0.3, 0.7]},
+                                   "render": {"samples": 8}})
 
 
 @dataclass
@@ -29,115 +49,254 @@ class DemoConfig:
     """What `n2d demo` runs."""
 
     object: str = "box"
-    """Sample object (box, bottle) or a model directory."""
-    views: int = 12
-    """Turntable stops in the sweep."""
+    """Sample object of the simulated world (box, bottle) or a model directory."""
+    name: str = ""
+    """Name the pipeline gives the object; empty: the sample's name."""
     width: int = 640
-    """Camera image width (px)."""
+    """Simulated camera image width (px)."""
     height: int = 480
-    """Camera image height (px)."""
+    """Simulated camera image height (px)."""
     focal_px: float = 600.0
-    """Camera focal length (px); scale it with the image size."""
-    velocity_rad_s: float = 1.5
-    """Plate profile velocity during the sweep."""
+    """Simulated camera focal length (px); scale it with the image size."""
+    empty_plate: bool = True
+    """Record the empty-plate sweep first (the background reference of the masks)."""
+    pipeline: PipelineConfig = field(default_factory=_demo_pipeline)
+    """The run (views, frames, training time, stage overrides)."""
+    live_views: int = 12
+    """Plate stops of the live check, a quarter step off the sweeps' angles (0: no live check)."""
+    live_frames: int = 3
+    """dope_node results scored at each stop."""
+    live_precision: str = "fp32"
+    """Model dope_node runs in the live check (fp32, int8)."""
     domain_id: int = -1
     """ROS_DOMAIN_ID of the private simulated world; -1: derived from the process id."""
     startup_timeout_s: float = 180.0
-    """How long to wait for the simulated world to come up (first render includes scene building)."""
-    extra_sim_args: dict = field(default_factory=dict)
-    """Further `n2d launch sim` arguments (name -> value)."""
+    """How long to wait for the nodes to come up (the sim camera's first render builds its scene)."""
 
     def __post_init__(self):
-        if self.views < 1:
-            raise ValueError("views must be >= 1")
         if self.width < 32 or self.height < 32:
             raise ValueError("width and height must be >= 32 px")
-        if self.velocity_rad_s <= 0:
-            raise ValueError("velocity_rad_s must be > 0")
+        if self.live_views < 0 or self.live_frames < 1:
+            raise ValueError("live_views must be >= 0 and live_frames >= 1")
+        if self.live_precision not in ("fp32", "int8"):
+            raise ValueError(f"live_precision is fp32 or int8, got {self.live_precision!r}")
+
+    def object_name(self) -> str:
+        return check_object_name(self.name or Path(self.object).name)
 
 
-def _wait_for_path(path: Path, timeout_s: float, launch) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        if launch.dead():
-            name, code = launch.dead()[0]
-            raise DeviceError(f"the simulated world failed to start ({name} exited with code {code})",
-                              "see its log lines above")
-        if time.monotonic() > deadline:
-            raise DeviceError(f"the simulated servo did not appear at {path} within {timeout_s:.0f} s")
-        time.sleep(0.1)
-
-
-def run_demo(out: Path, cfg: DemoConfig, *, overwrite: bool = False, progress: ProgressFn = no_progress,
+def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progress: ProgressFn = no_progress,
              log=print) -> dict:
-    """Run the demo into the run directory `out` and return its summary (also written to summary.json)."""
+    """Run the demo into the run directory `out` and return its summary (also `out/demo.json`)."""
+    import yaml
+
     from n2d.launch_description import load
     from n2d.launcher import Launch
-    from n2d_capture.turntable import Turntable, TurntableConfig
-    from n2d_common.ros import background_node, ros_environment
-    from n2d_sim.ros_client import SimCameraClient
+    from n2d_common.ros import SafeActionClient, background_node, call_action, ros_environment
+    from n2d_interfaces.action import Pipeline
 
-    done = read_manifest(out) if out.is_dir() else None
-    if done and done.get("complete") and done["kind"] == "run" and not overwrite:
+    out = Path(out).absolute()
+    layout = RunLayout(out)
+    summary_file = out / "demo.json"
+    manifest = read_manifest(out) if out.is_dir() else None
+    if manifest and manifest.get("complete") and summary_file.is_file() and not overwrite:
         log(f"{out} is complete already (pass --overwrite to run again)")
-        return done["extra"]
+        return json.loads(summary_file.read_text())
 
     t_start = time.monotonic()
+    name = cfg.object_name()
     domain = cfg.domain_id if cfg.domain_id >= 0 else 1 + os.getpid() % 100
     env = ros_environment(domain, env=dict(os.environ))
     os.environ.update(env)
     tmp = Path(tempfile.mkdtemp(prefix="n2d_demo_"))
-    sim_args = {"object": cfg.object, "port": str(tmp / "ttyDXL"), "control": str(tmp / "servo.ctl"),
-                "width": str(cfg.width), "height": str(cfg.height), "focal_px": str(cfg.focal_px),
-                **cfg.extra_sim_args}
-    with stage_output(out, "run", overwrite=overwrite, config=to_dict(cfg)) as writer, \
-            Launch(load("sim"), sim_args, env=env, log=lambda line: None) as world:
-        frames_dir = writer.path / "frames"
-        frames_dir.mkdir(exist_ok=True)
-        progress(Progress(0.0, "starting", message="simulated world: servo emulator + camera"))
-        _wait_for_path(Path(sim_args["port"]), cfg.startup_timeout_s, world)
-        records, sheet, labels = [], [], []
-        with background_node("n2d_demo") as node:
-            client = SimCameraClient(node)
-            table = TurntableConfig(port=sim_args["port"], velocity_limit_rad_s=cfg.velocity_rad_s)
-            with Turntable(table) as turntable:
-                # The first frame also waits for the renderer to build its scene.
-                client.next_frame(time.time(), timeout_s=cfg.startup_timeout_s)
-                for i in range(cfg.views):
-                    target = 2 * math.pi * i / cfg.views
-                    progress(Progress(i / cfg.views, "rotating", message=f"view {i + 1}/{cfg.views}"))
-                    reached = turntable.rotate_to(target)
-                    settled = time.time()
-                    progress(Progress((i + 0.5) / cfg.views, "grabbing", message=f"view {i + 1}/{cfg.views}"))
-                    obs = client.next_frame(settled)
-                    truth = _plate_angle(obs.T_cam_obj, records[0]["T_cam_obj"] if records else None)
-                    name = f"{i:04d}.png"
-                    write_png(frames_dir / name, obs.rgb)
-                    write_png(frames_dir / f"{i:04d}_mask.png", obs.mask.astype(np.uint8) * 255)
-                    records.append({"file": f"frames/{name}", "target_rad": target, "driver_rad": reached,
-                                    "true_delta_rad": truth, "stamp": obs.stamp_s,
-                                    "T_cam_obj": obs.T_cam_obj.tolist()})
-                    sheet.append(draw_mask_outline(obs.rgb, obs.mask, thickness=2))
-                    labels.append(f"{math.degrees(reached):6.1f} deg")
-            progress(Progress(1.0, "writing"))
-        write_png(writer.path / "contact_sheet.png", contact_sheet(sheet, labels))
-        errors = [abs(_wrap(r["driver_rad"] - records[0]["driver_rad"] - r["true_delta_rad"])) for r in records]
-        summary = {"views": len(records), "seconds": round(time.monotonic() - t_start, 1),
-                   "max_driver_vs_truth_deg": math.degrees(max(errors)), "K": client.K.tolist(),
-                   "frames": records}
-        atomic_write_json(writer.path / "frames.json", summary)
-        writer.finish(config=to_dict(cfg), extra={k: v for k, v in summary.items() if k != "frames"})
+    world_args = {"object": cfg.object, "port": str(tmp / "ttyDXL"), "control": str(tmp / "servo.ctl"),
+                  "width": str(cfg.width), "height": str(cfg.height), "focal_px": str(cfg.focal_px)}
+    logs: list[str] = []
+    progress(Progress(0.0, "starting", message="simulated world, stage nodes, pipeline_node"))
+    with Launch(load("pipeline"), world_args, env=env, log=logs.append) as launch, \
+            background_node("n2d_demo") as node:
+        client = SafeActionClient(node, Pipeline, "/n2d/pipeline")
+        config_yaml = yaml.safe_dump(to_dict(cfg.pipeline))
+        first = [overwrite]
+
+        def pipeline(stages: list[str], start: float, share: float):
+            """Send a Pipeline goal; its progress fills [start, start + share] of the demo's."""
+            goal = Pipeline.Goal(object_name=name, run_dir=str(out), config_yaml=config_yaml, stages=stages,
+                                 overwrite=first.pop() if first else False)
+
+            def feedback(fb) -> None:
+                progress(Progress(start + share * float(fb.progress), f"{fb.stage_index}/{fb.stages_total} {fb.stage}",
+                                  float(fb.eta_s), fb.message))
+
+            try:
+                return call_action(client, goal, what="pipeline", feedback=feedback,
+                                   server_timeout_s=cfg.startup_timeout_s)
+            except DeviceError:
+                raise DeviceError(_startup_failure(launch, logs)) from None
+
+        status = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
+        if cfg.empty_plate and (overwrite or not layout.done(EMPTY_PLATE, status)):
+            _set_object_visible(node, False, cfg.startup_timeout_s)
+            pipeline([EMPTY_PLATE], 0.0, 0.05)
+            _set_object_visible(node, True, 30.0)
+        status = json.loads(pipeline([], 0.05, 0.9).summary_json)
+        live = None
+        if cfg.live_views:
+            progress(Progress(0.95, "live", message="dope_node on the simulated camera"))
+            live = live_check(node, layout, cfg, env)
+    progress(Progress(1.0, "done"))
+    summary = {"object": name, "run_dir": str(out), "seconds_total": round(time.monotonic() - t_start, 1),
+               "seconds": {s: v["seconds"] for s, v in status["stages"].items()},
+               "evaluation": status["stages"]["evaluate"]["summary"], "live": live}
+    if live is not None:
+        summary["seconds"]["live"] = live["seconds"]
+    atomic_write_json(summary_file, summary)
     return summary
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
+def _startup_failure(launch, logs: list[str]) -> str:
+    dead = launch.dead()
+    what = f"{dead[0][0]} exited with code {dead[0][1]}" if dead else "the pipeline action did not come up"
+    return f"the pipeline nodes failed to start ({what}); last log lines:\n" + "\n".join(logs[-15:])
 
 
-def _plate_angle(T_cam_obj: np.ndarray, T_cam_obj0: np.ndarray | None) -> float:
-    """Rotation of the object about its own Z axis since the first frame, from ground-truth poses."""
-    if T_cam_obj0 is None:
-        return 0.0
-    R = np.asarray(T_cam_obj0)[:3, :3].T @ T_cam_obj[:3, :3]
-    return math.atan2(R[1, 0], R[0, 0])
+def _set_object_visible(node, visible: bool, timeout_s: float) -> None:
+    """Lift the simulated object off the plate or put it back (the sim camera's service)."""
+    from std_srvs.srv import SetBool
 
+    from n2d_common.ros import wait_future
+
+    client = node.create_client(SetBool, "/n2d/sim/set_object_visible")
+    if not client.wait_for_service(timeout_sec=timeout_s):
+        raise DeviceError("the simulated camera's set_object_visible service is not available")
+    if not wait_future(client.call_async(SetBool.Request(data=visible)), 60.0, "set_object_visible").success:
+        raise DeviceError("the simulated camera refused to move the object")
+    node.destroy_client(client)
+
+
+class _LiveRecorder:
+    """Collects, by image stamp, the simulator's true object poses, dope_node's detections and overlays."""
+
+    def __init__(self, node):
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image
+        from std_msgs.msg import Float64
+
+        from n2d_common.ros import SENSOR_QOS
+        from n2d_interfaces.msg import Detection3DArray
+
+        self.lock = threading.Lock()
+        self.truth: dict[int, object] = {}
+        self.detections: list = []
+        self.overlays: dict[int, object] = {}
+        self.latency_ms: list[float] = []
+        reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        self.subs = [
+            node.create_subscription(PoseStamped, "/n2d/sim/object_pose", lambda m: self._keep(self.truth, m),
+                                     SENSOR_QOS),
+            node.create_subscription(Detection3DArray, "/n2d/dope/detections", self._on_detections, reliable),
+            node.create_subscription(Image, "/n2d/dope/overlay", lambda m: self._keep(self.overlays, m, 20), reliable),
+            node.create_subscription(Float64, "/n2d/dope/latency_ms", lambda m: self.latency_ms.append(m.data),
+                                     reliable)]
+
+    @staticmethod
+    def key(stamp) -> int:
+        return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+    def _keep(self, store: dict, msg, limit: int = 200) -> None:
+        with self.lock:
+            store[self.key(msg.header.stamp)] = msg
+            while len(store) > limit:
+                store.pop(next(iter(store)))
+
+    def _on_detections(self, msg) -> None:
+        with self.lock:
+            self.detections.append(msg)
+
+    def after(self, t_s: float) -> list:
+        """Detection arrays of images stamped at or after `t_s` whose ground truth has arrived."""
+        with self.lock:
+            return [d for d in self.detections
+                    if self.key(d.header.stamp) >= t_s * 1e9 and self.key(d.header.stamp) in self.truth]
+
+
+def live_check(node, layout: RunLayout, cfg: DemoConfig, env: dict) -> dict:
+    """Run dope_node on the simulated camera, turn the plate through `cfg.live_views` new angles and score the
+    published poses against the simulator's ground truth; writes `live/live.json` and `live/overlays.png`."""
+    from n2d.launch_description import load
+    from n2d.launcher import Launch
+    from n2d_capture.nodes.ros_io import RosRotator
+    from n2d_common.frames import R_from_quat, make_T
+    from n2d_common.ros import image_rgb
+    from n2d_dope.evaluate import model_points
+    from n2d_dope.metrics import add, add_s, summarize
+    from n2d_sim.world import SimWorldConfig, T_plate_obj
+
+    t0 = time.monotonic()
+    model_dir, dope_dir = layout.output("reconstruct"), layout.output("train")
+    stored = (read_manifest(model_dir) or {}).get("extra", {}).get("T_turntable_obj")
+    if stored is None:
+        raise ContractError(f"{model_dir} does not record T_turntable_obj", "reconstruct it with this n2d")
+    # Both the reconstructed model and the simulator's object stand still on the plate, and the session's
+    # turntable frame is the plate frame at the first view: so this is fixed for the whole check.
+    T_simobj_obj = inv_T(T_plate_obj(SimWorldConfig(object=cfg.object))) @ np.array(stored, dtype=float)
+    points, diameter = model_points(model_dir)
+
+    def pose_T(pose) -> np.ndarray:
+        q = pose.orientation
+        return make_T(R_from_quat([q.x, q.y, q.z, q.w]), [pose.position.x, pose.position.y, pose.position.z])
+
+    name = cfg.object_name()
+    recorder = _LiveRecorder(node)
+    rotator = RosRotator(node, "/n2d/turntable/rotate")
+    add_errors, adds_errors, sheet, labels, records = [], [], [], [], []
+    logs: list[str] = []
+    with Launch(load("dope"), {"models": str(dope_dir), "precision": cfg.live_precision}, env=env,
+                log=logs.append) as dope:
+        for i in range(cfg.live_views):
+            angle = 2 * math.pi * (i + 0.25) / cfg.live_views
+            reached = rotator.rotate_to(angle)
+            settled = time.time()
+            deadline = time.monotonic() + (cfg.startup_timeout_s if i == 0 else 30.0)
+            while len(recorder.after(settled)) < cfg.live_frames:
+                if dope.dead() or time.monotonic() > deadline:
+                    raise DeviceError(f"dope_node published no poses for the live check (stop {i + 1})",
+                                      "last log lines:\n" + "\n".join(logs[-15:]))
+                time.sleep(0.05)
+            for msg in recorder.after(settled)[:cfg.live_frames]:
+                key = recorder.key(msg.header.stamp)
+                truth = pose_T(recorder.truth[key].pose) @ T_simobj_obj
+                ours = [d for d in msg.detections if d.results and d.results[0].hypothesis.class_id == name]
+                best = max(ours, key=lambda d: d.results[0].hypothesis.score, default=None)
+                if best is None:
+                    errors = (math.inf, math.inf)
+                else:
+                    T_est = pose_T(best.results[0].pose.pose)
+                    errors = (add(T_est, truth, points), add_s(T_est, truth, points))
+                add_errors.append(errors[0])
+                adds_errors.append(errors[1])
+                records.append({"stop": i, "plate_rad": reached, "stamp_ns": key, "detected": best is not None,
+                                "add_mm": None if best is None else 1000 * errors[0],
+                                "adds_mm": None if best is None else 1000 * errors[1]})
+            first = recorder.after(settled)[0]
+            overlay = recorder.overlays.get(recorder.key(first.header.stamp))
+            if overlay is not None:
+                error = records[-cfg.live_frames]["add_mm"]
+                sheet.append(image_rgb(overlay))
+                labels.append(f"{math.degrees(reached):5.1f} deg "
+                              + ("missed" if error is None else f"ADD {error:.0f} mm"))
+        seconds = time.monotonic() - t0
+        processed = len(recorder.detections)
+    for sub in recorder.subs:
+        node.destroy_subscription(sub)
+    result = {**summarize(add_errors, adds_errors, diameter), "precision": cfg.live_precision,
+              "views": cfg.live_views, "frames_per_view": cfg.live_frames, "processed_frames": processed,
+              "latency_ms_mean": float(np.mean(recorder.latency_ms)) if recorder.latency_ms else None,
+              "seconds": round(seconds, 1)}
+    live_dir = layout.root / LIVE_DIR
+    live_dir.mkdir(exist_ok=True)
+    if sheet:
+        write_png(live_dir / "overlays.png", contact_sheet(sheet, labels))
+    atomic_write_json(live_dir / "live.json", {**result, "frames": records})
+    return result

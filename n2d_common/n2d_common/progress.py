@@ -22,6 +22,10 @@ class Progress:
     info: dict = field(default_factory=dict)
     """Stage-specific numbers (view index, loss, ...)."""
 
+    def __post_init__(self):
+        # ROS feedback fields are float32: a whole number here (eta -1) would kill the node that sends it.
+        self.fraction, self.eta_s = float(self.fraction), float(self.eta_s)
+
 
 ProgressFn = Callable[[Progress], None]
 

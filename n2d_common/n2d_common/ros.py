@@ -8,6 +8,7 @@ from __future__ import annotations
 import array
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 import rclpy
+from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose
 from rcl_interfaces.msg import ParameterDescriptor
@@ -23,10 +25,11 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 
 from n2d_common.config import flat_fields, from_dict
-from n2d_common.errors import Cancelled, ConfigError, N2DError
+from n2d_common.errors import Cancelled, ConfigError, DeviceError, N2DError
 from n2d_common.frames import quat_from_R
 
 C = TypeVar("C")
@@ -68,8 +71,8 @@ def declare_config(node: Node, cls: type[C]) -> C:
     data: dict = {}
     for name, _tp, default, doc in flat_fields(cls):
         value = _param_value(default)
-        if value is None or (isinstance(value, list) and not value):
-            continue  # ROS parameters cannot be None or untyped empty lists: keep the dataclass default
+        if value is None or isinstance(value, dict) or (isinstance(value, list) and not value):
+            continue  # ROS parameters cannot be None, mappings or untyped empty lists: keep the dataclass default
         # A float parameter given as a whole number (`rate_hz:=5` from a launch file) arrives as an integer,
         # which rclpy refuses for a float parameter; let those through and have from_dict convert them.
         floats = isinstance(value, float) or (isinstance(value, list) and any(isinstance(v, float) for v in value))
@@ -92,12 +95,20 @@ class JobActionServer:
     does the work and fills the result; its Progress reports become feedback through `feedback(progress)`, and
     a cancel request sets its `cancel` event. The goal ends succeeded (result.success) when `run` returns,
     canceled on Cancelled, aborted on N2DError or ValueError (logged); result.message holds the reason.
+    `start(goal)` runs a job without an action client (for planners that only speak services); `state`,
+    `progress` and `result` say where the current or last job stands.
     """
 
     def __init__(self, node: Node, action_type, name: str, run: Callable, *, accept: Callable[[Any], bool],
                  feedback: Callable[[Any], Any]):
         self.cancel = threading.Event()
         """Set by a cancel request (and on shutdown); jobs watch it."""
+        self.state = "idle"
+        """idle, running, succeeded, failed or cancelled."""
+        self.progress: Any = None
+        """The current or last job's last Progress report."""
+        self.result: Any = None
+        """The last finished job's result."""
         self._busy = threading.Lock()
         self._node, self._type, self._run, self._accept, self._feedback = node, action_type, run, accept, feedback
         self._server = ActionServer(node, action_type, name, execute_callback=self._execute,
@@ -112,22 +123,52 @@ class JobActionServer:
         return CancelResponse.ACCEPT
 
     def _execute(self, goal_handle):
-        result = self._type.Result()
         with self._busy:
-            self.cancel.clear()
-            try:
-                self._run(goal_handle.request, result,
-                          lambda p: goal_handle.publish_feedback(self._feedback(p)), self.cancel)
-                result.success = True
-                goal_handle.succeed()
-            except Cancelled as exc:
-                result.message = str(exc)
-                goal_handle.canceled()
-            except (N2DError, ValueError) as exc:
-                result.message = str(exc)
-                self._node.get_logger().error(result.message)
-                goal_handle.abort()
+            result = self._job(goal_handle.request, goal_handle.publish_feedback)
+            end = {"succeeded": goal_handle.succeed, "cancelled": goal_handle.canceled}.get(self.state,
+                                                                                           goal_handle.abort)
+        end()
         return result
+
+    def _job(self, goal, publish: Callable[[Any], None]):
+        result = self._type.Result()
+        self.cancel.clear()
+        self.state, self.progress, self.result = "running", None, None
+
+        def report(p) -> None:
+            self.progress = p
+            publish(self._feedback(p))
+
+        try:
+            self._run(goal, result, report, self.cancel)
+            result.success = True
+            self.state = "succeeded"
+        except Cancelled as exc:
+            result.message = str(exc)
+            self.state = "cancelled"
+        except (N2DError, ValueError) as exc:
+            result.message = str(exc)
+            self._node.get_logger().error(result.message)
+            self.state = "failed"
+        self.result = result
+        return result
+
+    def start(self, goal) -> str:
+        """Run `goal` in a thread of its own, without an action client; returns "" when it started, else why not."""
+        if not self._accept(goal):
+            return "the goal is incomplete"
+        if not self._busy.acquire(blocking=False):
+            return "another job is running"
+        self.state = "running"
+
+        def job() -> None:
+            try:
+                self._job(goal, lambda _feedback: None)
+            finally:
+                self._busy.release()
+
+        threading.Thread(target=job, daemon=True).start()
+        return ""
 
     def destroy(self) -> None:
         """Tell a running job to stop and remove the server."""
@@ -233,7 +274,6 @@ def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int =
         raise SystemExit(code)
 
 
-
 class SafeActionClient(ActionClient):
     """rclpy's ActionClient, safe to call from a thread other than the executor's.
 
@@ -263,12 +303,59 @@ class SafeActionClient(ActionClient):
             return await super().execute(taken_data)
 
 
+def wait_future(future, timeout_s: float, what: str):
+    """The result of an rclpy future completed by another thread's executor; DeviceError after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not future.done():
+        if time.monotonic() > deadline:
+            raise DeviceError(f"{what}: no answer within {timeout_s:.0f} s", "is the node serving it running?")
+        time.sleep(0.01)
+    return future.result()
+
+
+def call_action(client: ActionClient, goal, *, what: str, feedback: Callable[[Any], None] | None = None,
+                cancel: threading.Event | None = None, server_timeout_s: float = 30.0,
+                timeout_s: float | None = None):
+    """Send `goal` on `client` (a SafeActionClient, its node spinning in another thread) and return the result.
+
+    Each feedback message goes to `feedback`; setting `cancel` cancels the goal and raises Cancelled once
+    the server has stopped. A refused goal, or one that ends aborted or with `success` false, raises
+    N2DError with the server's message; DeviceError when the server is missing or `timeout_s` passes.
+    """
+    name = client._action_name
+    if not client.wait_for_server(timeout_sec=server_timeout_s):
+        raise DeviceError(f"{what}: the action {name} is not available", "start the node that serves it")
+    on_feedback = (lambda msg: feedback(msg.feedback)) if feedback else None
+    handle = wait_future(client.send_goal_async(goal, feedback_callback=on_feedback), 10.0, f"{what} goal")
+    if not handle.accepted:
+        raise N2DError(f"{what}: {name} refused the goal", "is it busy with another goal?")
+    result_future = handle.get_result_async()
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    while not result_future.done():
+        if cancel is not None and cancel.is_set():
+            wait_future(handle.cancel_goal_async(), 10.0, f"cancelling {what}")
+            wait_future(result_future, 120.0, f"cancelled {what}")
+            raise Cancelled(f"{what} cancelled", "run it again to resume")
+        if deadline is not None and time.monotonic() > deadline:
+            raise DeviceError(f"{what} did not finish in {timeout_s:.0f} s")
+        time.sleep(0.01)
+    response = result_future.result()
+    result = response.result
+    if response.status == GoalStatus.STATUS_CANCELED:
+        raise Cancelled(f"{what} was cancelled by another client", "run it again to resume")
+    if response.status != GoalStatus.STATUS_SUCCEEDED or not getattr(result, "success", True):
+        raise N2DError(f"{what}: {result.message or 'failed'}")
+    return result
+
+
 @contextmanager
 def background_node(name: str, domain_id: int | None = None) -> Iterator[Node]:
     """For clients outside a node process (CLI, planners, tests): rclpy initialised, one node spinning in
     a background thread; executor, node and rclpy are shut down on exit."""
     ros_environment()
-    rclpy.init(domain_id=domain_id)
+    # No rclpy signal handlers: Ctrl-C stays a KeyboardInterrupt of the caller's main thread, which then leaves
+    # this context in order (rclpy's handler would shut the context down under the spinning thread).
+    rclpy.init(domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(name)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -276,6 +363,6 @@ def background_node(name: str, domain_id: int | None = None) -> Iterator[Node]:
     try:
         yield node
     finally:
-        executor.shutdown()
+        executor.shutdown(timeout_sec=5.0)
         node.destroy_node()
         rclpy.shutdown()

@@ -196,7 +196,7 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
             held_frames: list[Frame], cfg: TrainConfig, pos: dict, total: int, device: torch.device,
             progress: ProgressFn) -> dict:
     """Held-out loss, ONNX (+ INT8) export and config.json; returns the training summary."""
-    progress(Progress(0.95, "exporting", -1, "held-out loss and ONNX export"))
+    progress(Progress(0.95, "exporting", -1.0, "held-out loss and ONNX export"))
     held = held_out_loss(net, info, held_frames, name, cfg, device)
     onnx = export_onnx(net, directory / "model.onnx", cfg.input_size, cfg.opset)
     models = {"fp32": "model.onnx"}

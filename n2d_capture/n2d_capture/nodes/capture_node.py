@@ -47,12 +47,10 @@ class CaptureNode(Node):
     def __init__(self):
         super().__init__(self.NAME)
         self.cfg = declare_config(self, CaptureNodeConfig)
-        self.camera = RosFrameSource(self, self.cfg.image_topic, self.cfg.camera_info_topic,
-                                     self.cfg.use_header_stamp)
         self.jobs = JobActionServer(self, Capture, "capture", self.run_goal, accept=lambda g: bool(g.session_dir),
                                     feedback=self._feedback)
         self.rotator = RosRotator(self, self.cfg.rotate_action, self.jobs.cancel)
-        self.get_logger().info(f"capture ready: images from {self.camera.topic}")
+        self.get_logger().info(f"capture ready: images from {self.resolve_topic_name(self.cfg.image_topic)}")
 
     def _goal_config(self, goal: Capture.Goal) -> CaptureConfig:
         data = to_dict(self.cfg.capture)
@@ -72,8 +70,14 @@ class CaptureNode(Node):
 
     def run_goal(self, goal: Capture.Goal, result: Capture.Result, progress, cancel) -> None:
         result.session_dir = goal.session_dir
-        summary = capture(goal.session_dir, self._goal_config(goal), self.rotator, self.camera,
-                          empty_plate=goal.empty_plate, overwrite=goal.overwrite, progress=progress, cancel=cancel)
+        cfg = self._goal_config(goal)
+        # Subscribed only while a sweep runs: an idle node costs the camera driver and this machine nothing.
+        camera = RosFrameSource(self, self.cfg.image_topic, self.cfg.camera_info_topic, self.cfg.use_header_stamp)
+        try:
+            summary = capture(goal.session_dir, cfg, self.rotator, camera, empty_plate=goal.empty_plate,
+                              overwrite=goal.overwrite, progress=progress, cancel=cancel)
+        finally:
+            camera.close()
         result.views_captured = summary["views"]
         result.message = summary.get("message", "")
 

@@ -17,8 +17,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from n2d_capture.sweep import Frame
-from n2d_common.errors import Cancelled, DeviceError
-from n2d_common.ros import SENSOR_QOS, SafeActionClient, image_rgb, stamp_seconds
+from n2d_common.errors import Cancelled, DeviceError, N2DError
+from n2d_common.ros import SENSOR_QOS, SafeActionClient, call_action, image_rgb, stamp_seconds
 from n2d_interfaces.action import Rotate
 
 
@@ -31,8 +31,15 @@ class RosFrameSource:
         self._cond = threading.Condition()
         self._use_header = use_header_stamp
         self.topic = node.resolve_topic_name(image_topic)
-        node.create_subscription(Image, image_topic, self._on_image, SENSOR_QOS)
-        node.create_subscription(CameraInfo, camera_info_topic, self._on_info, SENSOR_QOS)
+        self._node = node
+        self._subs = [node.create_subscription(Image, image_topic, self._on_image, SENSOR_QOS),
+                      node.create_subscription(CameraInfo, camera_info_topic, self._on_info, SENSOR_QOS)]
+
+    def close(self) -> None:
+        """Unsubscribe (a node that only needs frames during a sweep stops receiving them)."""
+        for sub in self._subs:
+            self._node.destroy_subscription(sub)
+        self._subs = []
 
     def _on_image(self, msg: Image) -> None:
         stamp = stamp_seconds(msg.header.stamp) if self._use_header else time.time()
@@ -67,37 +74,18 @@ class RosRotator:
     def __init__(self, node: Node, action: str, cancel: threading.Event | None = None,
                  server_timeout_s: float = 20.0, move_timeout_s: float = 120.0):
         self.client = SafeActionClient(node, Rotate, action)
-        self.action = action
         self.cancel = cancel
         self.server_timeout_s = server_timeout_s
         self.move_timeout_s = move_timeout_s
 
-    def _wait(self, future, timeout_s: float, what: str):
-        deadline = time.monotonic() + timeout_s
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise DeviceError(f"{what} on {self.action}: no answer within {timeout_s:.0f} s",
-                                  "is turntable_node running?")
-            time.sleep(0.01)
-        return future.result()
-
     def rotate_to(self, angle_rad: float) -> float:
-        if not self.client.wait_for_server(timeout_sec=self.server_timeout_s):
-            raise DeviceError(f"turntable action {self.action} is not available", "start turntable_node")
-        handle = self._wait(self.client.send_goal_async(Rotate.Goal(angle_rad=angle_rad)), 10.0, "rotate goal")
-        if not handle.accepted:
-            raise DeviceError(f"turntable refused to rotate to {angle_rad:.3f} rad", "is another rotation running?")
-        result_future = handle.get_result_async()
-        deadline = time.monotonic() + self.move_timeout_s
-        while not result_future.done():
-            if self.cancel is not None and self.cancel.is_set():
-                self._wait(handle.cancel_goal_async(), 10.0, "cancel")
-                self._wait(result_future, 10.0, "cancelled rotation")
-                raise Cancelled("capture cancelled while the plate was turning", "run it again to resume")
-            if time.monotonic() > deadline:
-                raise DeviceError(f"rotation to {angle_rad:.3f} rad did not finish in {self.move_timeout_s:.0f} s")
-            time.sleep(0.01)
-        result = result_future.result().result
-        if not result.success:
-            raise DeviceError(f"turntable: {result.message}")
+        try:
+            result = call_action(self.client, Rotate.Goal(angle_rad=angle_rad), what="turntable", cancel=self.cancel,
+                                 server_timeout_s=self.server_timeout_s, timeout_s=self.move_timeout_s)
+        except Cancelled:
+            raise Cancelled("capture cancelled while the plate was turning", "run it again to resume") from None
+        except DeviceError:
+            raise
+        except N2DError as exc:  # the turntable refused or failed the rotation: a device fault for the sweep
+            raise DeviceError(exc.message, exc.hint) from None
         return result.angle_rad

@@ -6,9 +6,9 @@ Publishes (under its namespace) `camera/image_raw` (rgb8, sensor noise), `camera
 It renders (in a bpy worker process) whenever the true plate angle on `sim/plate_state` changes.
 The service `sim/set_object_visible` (std_srvs/SetBool) lifts the object off the plate and puts it
 back: what a person does for the empty-plate background sweep.
-While the plate stands still it republishes the last render with fresh noise at `rate_hz`, stamped
-now; while it moves it publishes each finished render stamped with the time of the angle it shows,
-so the rate drops during motion rather than showing an old scene with a new stamp.
+While the plate stands still it republishes the last render with fresh noise at `rate_hz` (while anyone
+subscribes), stamped now; while it moves it publishes each finished render stamped with the time of the
+angle it shows, so the rate drops during motion rather than showing an old scene with a new stamp.
 """
 
 from __future__ import annotations
@@ -103,7 +103,9 @@ class SimCameraNode(Node):
 
     def on_timer(self) -> None:
         frame, angle = self._frame, self._angle
-        if self._current(frame, angle):
+        # Republishing 640x480 with fresh noise costs a third of a core: only while someone listens.
+        watched = any(p.get_subscription_count() for p in (self.image_pub, self.pose_pub, self.mask_pub))
+        if watched and self._current(frame, angle):
             self.publish(frame, time.time())
 
     def _render_loop(self) -> None:
