@@ -45,10 +45,12 @@ def test_unknown_launch_and_bad_argument(capsys):
 
 
 def test_bad_demo_config(tmp_path, capsys):
-    assert main(["demo", str(tmp_path / "run"), "--set", "views=0"]) == 2
+    assert main(["demo", str(tmp_path / "run"), "--set", "pipeline.views=0"]) == 2
     assert "views must be >= 1" in _error_lines(capsys)[0]
+    assert main(["demo", str(tmp_path / "run"), "--set", "name=my mug"]) == 2
+    assert "object name 'my mug' is not usable" in _error_lines(capsys)[0]
     bad = tmp_path / "bad.yaml"
-    bad.write_text("views: [1,\n")
+    bad.write_text("live_views: [1,\n")
     assert main(["demo", str(tmp_path / "run"), "--config", str(bad)]) == 2
     assert "not valid YAML" in _error_lines(capsys)[0]
     assert not (tmp_path / "run").exists()
@@ -59,7 +61,7 @@ def test_demo_refuses_foreign_output_and_keeps_it(tmp_path, capsys):
     out.mkdir()
     (out / "notes.txt").write_text("keep me")
     assert main(["demo", str(out)]) == 2
-    assert "not an n2d directory" in _error_lines(capsys)[0]
+    assert "not an n2d run directory" in _error_lines(capsys)[0]
     assert (out / "notes.txt").read_text() == "keep me"
 
 

@@ -51,14 +51,16 @@ def test_demo_runs_the_pipeline_resumes_after_ctrl_c_and_scores_poses(tmp_path, 
     cmd = _command(out, ros_domain)
 
     # Ctrl-C while the network trains: the finished stages stay, and so does the training's checkpoint
-    first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "first.log"  # a file, not a pipe: a full pipe would block the demo's progress output
+    with open(log, "w") as sink:
+        first = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 900
     while not (out / "dope.partial" / "checkpoint.pt").is_file():
-        assert first.poll() is None, first.stdout.read()[-3000:]
+        assert first.poll() is None, log.read_text()[-3000:]
         assert time.monotonic() < deadline, "the train stage did not start"
         time.sleep(0.5)
     first.send_signal(signal.SIGINT)
-    assert first.wait(timeout=120) == 130, first.stdout.read()[-3000:]
+    assert first.wait(timeout=120) == 130, log.read_text()[-3000:]
     before = json.loads((out / "run.json").read_text())["stages"]
     assert set(before) == {"empty_plate", "capture", "test_capture", "reconstruct", "dataset", "test_dataset"}
     assert not json.loads((out / "n2d.json").read_text())["complete"]

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from n2d.pipeline import EMPTY_PLATE, PipelineConfig, RunLayout, check_object_name
+from n2d.pipeline import EMPTY_PLATE, PipelineConfig, RunLayout, check_object_name, check_run_dir
 from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, read_manifest
 from n2d_common.errors import ContractError, DeviceError
@@ -98,13 +98,13 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
     out = Path(out).absolute()
     layout = RunLayout(out)
     summary_file = out / "demo.json"
-    manifest = read_manifest(out) if out.is_dir() else None
+    name = cfg.object_name()
+    manifest = check_run_dir(out, name, cfg.pipeline, overwrite)  # before anything starts
     if manifest and manifest.get("complete") and summary_file.is_file() and not overwrite:
         log(f"{out} is complete already (pass --overwrite to run again)")
         return json.loads(summary_file.read_text())
 
     t_start = time.monotonic()
-    name = cfg.object_name()
     domain = cfg.domain_id if cfg.domain_id >= 0 else 1 + os.getpid() % 100
     env = ros_environment(domain, env=dict(os.environ))
     os.environ.update(env)

@@ -174,24 +174,34 @@ def check_object_name(name: str) -> str:
     return name
 
 
+def check_run_dir(root: Path, object_name: str, cfg: PipelineConfig, overwrite: bool = False) -> dict | None:
+    """Check that `root` is free, or a run of the same object and config (any run with `overwrite`); returns
+    its manifest (None when there is none yet). ContractError otherwise: a file, a foreign directory, another
+    kind of n2d directory, a run of another object or config."""
+    check_object_name(object_name)
+    if not root.exists():
+        return None
+    manifest = read_manifest(root) if root.is_dir() else None
+    if manifest is None and (not root.is_dir() or any(root.iterdir())):
+        raise ContractError(f"{root} exists and is not an n2d run directory", "choose another run directory")
+    if manifest is not None and manifest["kind"] != "run":
+        raise ContractError(f"{root} holds a {manifest['kind'].replace('_', ' ')}", "choose another run directory")
+    if manifest is not None and not overwrite and manifest.get("config") != {"object_name": object_name,
+                                                                            **to_dict(cfg)}:
+        raise ContractError(f"{root} holds a run of another object or config",
+                            "use the same object and config to resume it, another run directory, or overwrite")
+    return manifest
+
+
 def _open_run(layout: RunLayout, object_name: str, cfg: PipelineConfig, overwrite: bool) -> dict:
     """Create the run directory, or check that the existing one is a run of the same object and config;
     returns its status (run.json)."""
-    root, config = layout.root, {"object_name": object_name, **to_dict(cfg)}
-    if root.exists():
-        manifest = read_manifest(root) if root.is_dir() else None
-        if manifest is None and root.is_dir() and any(root.iterdir()):
-            raise ContractError(f"{root} exists and is not an n2d run directory", "choose another run directory")
-        if manifest is not None and manifest["kind"] != "run":
-            raise ContractError(f"{root} holds a {manifest['kind'].replace('_', ' ')}", "choose another run directory")
-        if manifest is not None and overwrite:
-            shutil.rmtree(root)
-        elif manifest is not None and manifest.get("config") != config:
-            raise ContractError(f"{root} holds a run of another object or config",
-                                "use the same object and config to resume it, another run directory, or overwrite")
+    root = layout.root
+    if check_run_dir(root, object_name, cfg, overwrite) is not None and overwrite:
+        shutil.rmtree(root)
     root.mkdir(parents=True, exist_ok=True)
     if read_manifest(root) is None:
-        write_manifest(root, "run", config=config, complete=False)
+        write_manifest(root, "run", config={"object_name": object_name, **to_dict(cfg)}, complete=False)
     if layout.status_file.is_file():
         return json.loads(layout.status_file.read_text())
     return {"object_name": object_name, "stages": {}}
@@ -221,7 +231,6 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
     """
     cancel = cancel or threading.Event()
     layout = RunLayout(Path(run_dir).absolute())
-    check_object_name(object_name)
     order = _order(stages, cfg)
     status = _open_run(layout, object_name, cfg, overwrite)
     for stage in order:
