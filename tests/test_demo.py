@@ -53,14 +53,22 @@ def test_demo_runs_the_pipeline_resumes_after_ctrl_c_and_scores_poses(tmp_path, 
     # Ctrl-C while the network trains: the finished stages stay, and so does the training's checkpoint
     log = tmp_path / "first.log"  # a file, not a pipe: a full pipe would block the demo's progress output
     with open(log, "w") as sink:
-        first = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 900
-    while not (out / "dope.partial" / "checkpoint.pt").is_file():
-        assert first.poll() is None, log.read_text()[-3000:]
-        assert time.monotonic() < deadline, "the train stage did not start"
-        time.sleep(0.5)
-    first.send_signal(signal.SIGINT)
-    assert first.wait(timeout=120) == 130, log.read_text()[-3000:]
+        # A shell runs background jobs with SIGINT ignored, and Python keeps an ignored SIGINT: give the demo
+        # the default, as a terminal would.
+        first = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, text=True,
+                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 900
+        while not (out / "dope.partial" / "checkpoint.pt").is_file():
+            assert first.poll() is None, log.read_text()[-3000:]
+            assert time.monotonic() < deadline, "the train stage did not start"
+            time.sleep(0.5)
+        first.send_signal(signal.SIGINT)
+        assert first.wait(timeout=120) == 130, log.read_text()[-3000:]
+    finally:
+        if first.poll() is None:  # a failed test must not leave the demo and its nodes running
+            first.kill()
+            first.wait()
     before = json.loads((out / "run.json").read_text())["stages"]
     assert set(before) == {"empty_plate", "capture", "test_capture", "reconstruct", "dataset", "test_dataset"}
     assert not json.loads((out / "n2d.json").read_text())["complete"]
