@@ -43,6 +43,8 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+from n2d_common.contracts import atomic_write_text
+
 HERE = Path(__file__).resolve().parent
 
 STAGES = {"sim_camera": "sim camera", "board_poses": "board poses", "masks": "masks", "capture": "capture",
@@ -177,7 +179,7 @@ def _display(path: str) -> str:
 
 def write_results(out: Path, machine_line: str, machine_short: str, command: str, quick: bool, rows: list[Row],
                   runs: list[str]) -> None:
-    """Write the results file atomically (a temporary file beside it, then renamed)."""
+    """Write the results file atomically."""
     lines = ["# Benchmark results", "",
              f"Date: {datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')}  ",
              f"Machine: {machine_line}  ",
@@ -190,9 +192,7 @@ def write_results(out: Path, machine_line: str, machine_short: str, command: str
         lines.append("| " + " | ".join(_cell(c) for c in (stage, metric, value, goal, met, machine_short)) + " |")
     lines += ["", "Benchmarks run:", ""] + [f"- {r}" for r in runs]
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.partial")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    os.replace(tmp, out)
+    atomic_write_text(out, "\n".join(lines) + "\n")
 
 
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:

@@ -13,7 +13,8 @@ from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d.pipeline import PipelineConfig, run_pipeline
 from n2d_capture.session import read_session
-from n2d_common.contracts import open_stage
+from n2d_common.config import to_dict
+from n2d_common.contracts import open_stage, write_manifest
 from n2d_common.errors import ConfigError, ContractError
 from n2d_common.ros import background_node, wait_future
 from n2d_interfaces.srv import PipelineStatus, StartPipeline
@@ -48,6 +49,12 @@ def test_bad_input_is_refused_before_any_stage_runs(tmp_path):
         run_pipeline(tmp_path / "a", "mug", cfg, NoStages(), stages=["empty_plate", "capture"])
     with pytest.raises(ContractError, match="empty-plate sweep"):
         run_pipeline(tmp_path / "a", "mug", cfg, NoStages())
+    with pytest.raises(ContractError, match="needs the output of dataset"):
+        run_pipeline(tmp_path / "a", "mug", cfg, NoStages(), stages=["train"])
+    assert not (tmp_path / "a").exists()  # a refused call writes nothing
+
+    # a run of the mug with the default config (its manifest, as the first stage of a run writes it)
+    write_manifest(tmp_path / "a", "run", config={"object_name": "mug", **to_dict(cfg)}, complete=False)
     with pytest.raises(ContractError, match="needs the output of dataset"):
         run_pipeline(tmp_path / "a", "mug", cfg, NoStages(), stages=["train"])
     with pytest.raises(ContractError, match="another object or config"):

@@ -12,6 +12,7 @@ from the last finished stage (the unfinished one resumes from its partial output
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -108,38 +109,37 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
     domain = cfg.domain_id if cfg.domain_id >= 0 else 1 + os.getpid() % 100
     env = ros_environment(domain, env=dict(os.environ))
     os.environ.update(env)
-    tmp = Path(tempfile.mkdtemp(prefix="n2d_demo_"))
-    world_args = {"object": cfg.object, "port": str(tmp / "ttyDXL"), "control": str(tmp / "servo.ctl"),
-                  "width": str(cfg.width), "height": str(cfg.height), "focal_px": str(cfg.focal_px)}
     logs: list[str] = []
-    progress(Progress(0.0, "starting", message="simulated world, stage nodes, pipeline_node"))
-    with Launch(load("pipeline"), world_args, env=env, log=logs.append) as launch, \
-            background_node("n2d_demo") as node:
+    with contextlib.ExitStack() as stack:
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="n2d_demo_")))  # pty link, control socket
+        world_args = {"object": cfg.object, "port": str(tmp / "ttyDXL"), "control": str(tmp / "servo.ctl"),
+                      "width": str(cfg.width), "height": str(cfg.height), "focal_px": str(cfg.focal_px)}
+        progress(Progress(0.0, "starting", message="simulated world, stage nodes, pipeline_node"))
+        launch = stack.enter_context(Launch(load("pipeline"), world_args, env=env, log=logs.append))
+        node = stack.enter_context(background_node("n2d_demo"))
         client = SafeActionClient(node, Pipeline, "/n2d/pipeline")
+        if not client.wait_for_server(timeout_sec=cfg.startup_timeout_s):
+            raise DeviceError(_startup_failure(launch, logs))
         config_yaml = yaml.safe_dump(to_dict(cfg.pipeline))
-        first = [overwrite]
 
-        def pipeline(stages: list[str], start: float, share: float):
+        def pipeline(stages: list[str], start: float, share: float, overwrite: bool):
             """Send a Pipeline goal; its progress fills [start, start + share] of the demo's."""
             goal = Pipeline.Goal(object_name=name, run_dir=str(out), config_yaml=config_yaml, stages=stages,
-                                 overwrite=first.pop() if first else False)
+                                 overwrite=overwrite)
 
             def feedback(fb) -> None:
-                progress(Progress(start + share * float(fb.progress), f"{fb.stage_index}/{fb.stages_total} {fb.stage}",
-                                  float(fb.eta_s), fb.message))
+                progress(Progress(start + share * fb.progress, f"{fb.stage_index}/{fb.stages_total} {fb.stage}",
+                                  fb.eta_s, fb.message))
 
-            try:
-                return call_action(client, goal, what="pipeline", feedback=feedback,
-                                   server_timeout_s=cfg.startup_timeout_s)
-            except DeviceError:
-                raise DeviceError(_startup_failure(launch, logs)) from None
+            return call_action(client, goal, what="pipeline", feedback=feedback)
 
         status = json.loads((out / "run.json").read_text()) if (out / "run.json").is_file() else {}
-        if cfg.empty_plate and (overwrite or not layout.done(EMPTY_PLATE, status)):
+        empty_sweep = cfg.empty_plate and (overwrite or not layout.done(EMPTY_PLATE, status))
+        if empty_sweep:
             _set_object_visible(node, False, cfg.startup_timeout_s)
-            pipeline([EMPTY_PLATE], 0.0, 0.05)
+            pipeline([EMPTY_PLATE], 0.0, 0.05, overwrite)
             _set_object_visible(node, True, 30.0)
-        status = json.loads(pipeline([], 0.05, 0.9).summary_json)
+        status = json.loads(pipeline([], 0.05, 0.9, overwrite and not empty_sweep).summary_json)
         live = None
         if cfg.live_views:
             progress(Progress(0.95, "live", message="dope_node on the simulated camera"))

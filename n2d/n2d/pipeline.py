@@ -166,6 +166,11 @@ class RunLayout:
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 
 
+def _run_config(object_name: str, cfg: PipelineConfig) -> dict:
+    """What a run's manifest records, and what a later call must repeat to continue it."""
+    return {"object_name": object_name, **to_dict(cfg)}
+
+
 def check_object_name(name: str) -> str:
     """An object name usable in topics and file names, or ConfigError."""
     if not _NAME.match(name or ""):
@@ -186,23 +191,15 @@ def check_run_dir(root: Path, object_name: str, cfg: PipelineConfig, overwrite: 
         raise ContractError(f"{root} exists and is not an n2d run directory", "choose another run directory")
     if manifest is not None and manifest["kind"] != "run":
         raise ContractError(f"{root} holds a {manifest['kind'].replace('_', ' ')}", "choose another run directory")
-    if manifest is not None and not overwrite and manifest.get("config") != {"object_name": object_name,
-                                                                            **to_dict(cfg)}:
+    if manifest is not None and not overwrite and manifest.get("config") != _run_config(object_name, cfg):
         raise ContractError(f"{root} holds a run of another object or config",
                             "use the same object and config to resume it, another run directory, or overwrite")
     return manifest
 
 
-def _open_run(layout: RunLayout, object_name: str, cfg: PipelineConfig, overwrite: bool) -> dict:
-    """Create the run directory, or check that the existing one is a run of the same object and config;
-    returns its status (run.json)."""
-    root = layout.root
-    if check_run_dir(root, object_name, cfg, overwrite) is not None and overwrite:
-        shutil.rmtree(root)
-    root.mkdir(parents=True, exist_ok=True)
-    if read_manifest(root) is None:
-        write_manifest(root, "run", config={"object_name": object_name, **to_dict(cfg)}, complete=False)
-    if layout.status_file.is_file():
+def _read_status(layout: RunLayout, object_name: str, fresh: bool) -> dict:
+    """The run's run.json, or an empty status for a new run (or one about to be overwritten)."""
+    if layout.status_file.is_file() and not fresh:
         return json.loads(layout.status_file.read_text())
     return {"object_name": object_name, "stages": {}}
 
@@ -232,7 +229,9 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
     cancel = cancel or threading.Event()
     layout = RunLayout(Path(run_dir).absolute())
     order = _order(stages, cfg)
-    status = _open_run(layout, object_name, cfg, overwrite)
+    manifest = check_run_dir(layout.root, object_name, cfg, overwrite)
+    status = _read_status(layout, object_name, fresh=overwrite)
+    # every check before anything is written: a refused call leaves the run directory as it was
     for stage in order:
         missing = [need for need in NEEDS.get(stage, ()) if need not in order and not layout.done(need, status)]
         if missing:
@@ -242,6 +241,11 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
             and not layout.done(EMPTY_PLATE, status)):
         raise ContractError("no empty-plate sweep is recorded for this run (the masks' background reference)",
                             "clear the plate and run the empty_plate stage first, or set require_empty_plate: false")
+    if manifest is not None and overwrite:
+        shutil.rmtree(layout.root)
+    layout.root.mkdir(parents=True, exist_ok=True)
+    if read_manifest(layout.root) is None:
+        write_manifest(layout.root, "run", config=_run_config(object_name, cfg), complete=False)
     total = sum(WEIGHTS[s] for s in order)
     before = 0.0
     for index, stage in enumerate(order, 1):
@@ -270,7 +274,7 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
             atomic_write_json(layout.status_file, status)
         before += WEIGHTS[stage]
     if not stages and all(layout.done(s, status) for s in cfg.stages()):
-        write_manifest(layout.root, "run", config={"object_name": object_name, **to_dict(cfg)},
+        write_manifest(layout.root, "run", config=_run_config(object_name, cfg),
                        extra={"seconds": {s: v["seconds"] for s, v in status["stages"].items()},
                               "evaluation": status["stages"].get("evaluate", {}).get("summary", {})})
     return status
