@@ -94,3 +94,20 @@ def test_capture_import_of_a_missing_folder(tmp_path, capsys):
     assert main(["capture", "import", str(tmp_path / "nope"), str(tmp_path / "session")]) == 2
     assert "does not exist" in _error_lines(capsys)[0]
     assert not (tmp_path / "session").exists() and not (tmp_path / "session.partial").exists()
+
+
+def test_capture_reads_the_board_json_that_n2d_board_writes(tmp_path, capsys):
+    import argparse
+
+    from n2d.cli import _capture_config
+
+    assert main(["board", str(tmp_path / "board"), "--set", "squares_x=5", "--set", "square_m=0.035"]) == 0
+    args = argparse.Namespace(config=None, set=["pose_from=colmap"], board=tmp_path / "board" / "board.json")
+    cfg = _capture_config(args)
+    assert (cfg.board.squares_x, cfg.board.square_m, cfg.pose_from) == (5, 0.035, "colmap")
+
+    (tmp_path / "bad.json").write_text('{"squares_x": 5, "square_mm": 35}')
+    capsys.readouterr()
+    assert main(["capture", "import", str(tmp_path / "photos"), str(tmp_path / "session"),
+                 "--board", str(tmp_path / "bad.json")]) == 2
+    assert "square_mm" in _error_lines(capsys)[0]

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from helpers import write_photos
 
 from n2d_capture.board import CalibrationError
 from n2d_capture.capture import CaptureConfig
@@ -40,20 +41,11 @@ def shots():
                 "views": views, "empties": empties, "masks": masks}
 
 
-def _write(folder, images, suffix):
-    """Save RGB images as a camera would name them: IMG_0000<suffix>, ... (JPEG at quality 95)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, rgb in enumerate(images):
-        assert cv2.imwrite(str(folder / f"IMG_{i:04d}{suffix}"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                           [cv2.IMWRITE_JPEG_QUALITY, 95])
-    return folder
-
-
 def _photos(tmp_path, shots):
     """A folder of object photos (.JPG, plus a stray text file) and one of empty-plate photos (.png)."""
-    photos = _write(tmp_path / "photos", shots["views"], ".JPG")
+    photos = write_photos(tmp_path / "photos", shots["views"], ".JPG")
     (photos / "notes.txt").write_text("not a photo")
-    return photos, _write(tmp_path / "empty", shots["empties"], ".png")
+    return photos, write_photos(tmp_path / "empty", shots["empties"], ".png")
 
 
 def _check_against_truth(session_dir, shots):
@@ -138,12 +130,12 @@ def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, shots):
     with pytest.raises(ContractError, match="does not exist"):
         import_photos(tmp_path / "missing", out, cfg)
 
-    mixed = _write(tmp_path / "mixed", shots["views"][:3], ".png")
+    mixed = write_photos(tmp_path / "mixed", shots["views"][:3], ".png")
     cv2.imwrite(str(mixed / "IMG_0001.png"), cv2.resize(shots["views"][1], (320, 240)))
     with pytest.raises(ContractError, match="320x240"):
         import_photos(mixed, out, cfg)
 
-    few = _write(tmp_path / "few", shots["empties"][:5], ".png")
+    few = write_photos(tmp_path / "few", shots["empties"][:5], ".png")
     with pytest.raises(ContractError, match="8 photos .* but 5 empty-plate photos"):
         import_photos(photos, out, cfg, empty_dir=few)
     with pytest.raises(ConfigError, match="3 plate angles for 8 photos"):

@@ -149,12 +149,31 @@ def _capture_io(args, cancel, stack):
                                                          servo_id=args.servo_id))), camera
 
 
+def _capture_config(args):
+    """CaptureConfig from --config / --set, with the board spec of --board (board.json of `n2d board`)."""
+    from n2d_capture.board import BoardSpec
+    from n2d_capture.capture import CaptureConfig
+    from n2d_common.config import read_mapping
+
+    cfg = _config(CaptureConfig, args)
+    if args.board:
+        cfg.board = BoardSpec.from_dict(read_mapping(args.board))
+    return cfg
+
+
+def _posed_counts(summary: dict) -> str:
+    counts = [(summary.get(f"posed_from_{k}", 0), what) for k, what in (
+        ("axis", "from the fitted axis"), ("board", "from their board pose"), ("colmap", "by COLMAP"),
+        ("servo", "from the servo angle alone"))]
+    return ", ".join(f"{n} {what}" for n, what in counts if n)
+
+
 def cmd_capture(args) -> int:
     import threading
 
-    from n2d_capture.capture import CaptureConfig, capture
+    from n2d_capture.capture import capture
 
-    cfg = _config(CaptureConfig, args)
+    cfg = _capture_config(args)
     if args.views:
         cfg.sweep.views = args.views
     cancel = threading.Event()
@@ -169,22 +188,19 @@ def cmd_capture(args) -> int:
     if not summary["complete"]:
         print(f"capture: {summary['views']} empty-plate views kept; {summary['message']}")
         return 0
-    print(f"capture: {summary['views']} views ({summary['posed_from_axis']} posed from the fitted axis, "
-          f"{summary['posed_from_board']} from their board pose, {summary['posed_from_servo']} from the servo "
-          f"angle alone); turntable fit residual "
+    print(f"capture: {summary['views']} views (posed {_posed_counts(summary)}); turntable fit residual "
           f"{summary['fit_rotation_residual_deg']:.3f} deg / {summary['fit_translation_residual_mm']:.2f} mm")
     print(f"capture: wrote {args.session}/ (transforms.json, capture.json, contact_sheet.png)")
     return 0
 
 
 def cmd_capture_import(args) -> int:
-    from n2d_capture.capture import CaptureConfig
     from n2d_capture.importer import import_photos
 
-    cfg = _config(CaptureConfig, args)
+    cfg = _capture_config(args)
     summary = import_photos(args.photos, args.out, cfg, empty_dir=args.empty, intrinsics=args.intrinsics,
                             overwrite=args.overwrite, progress=_progress_bar("import"))
-    print(f"import: {summary['views']} views ({summary['posed_from_board']} posed from the board); "
+    print(f"import: {summary['views']} views (posed {_posed_counts(summary)}); "
           f"wrote {args.out}/ (transforms.json, capture.json, contact_sheet.png)")
     return 0
 
@@ -349,6 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rotate-action", default="", help="turn the plate through this Rotate action (e.g. "
                    "/n2d/turntable/rotate, when turntable_node owns the port) instead of --port")
     p.add_argument("--overwrite", action="store_true", help="discard an existing or unfinished session")
+    p.add_argument("--board", type=Path, help="board.json of the printed board (from n2d board; default: the "
+                   "default board)")
     _add_config_options(p)
     p.set_defaults(func=cmd_capture)
 
@@ -357,12 +375,15 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Import stills (DSLR, phone, another turntable) with the ChArUco board in view: "
                        "the same board, pose and mask code as a capture. Optional: empty-plate photos taken at the "
                        "same angles (--empty), per-photo plate angles in PHOTOS/angles.csv (file,angle_deg) or "
-                       "angles.json, and the camera intrinsics (--intrinsics; default: calibrated from the board).")
+                       "angles.json, and the camera intrinsics (--intrinsics; default: calibrated from the board). "
+                       "Photos where the object hides the board: --set pose_from=colmap (structure from motion on "
+                       "the object; without the board in 3+ photos also --set sfm.camera_distance_m=METRES).")
     p.add_argument("photos", type=Path, help="folder of .jpg/.png photos (sorted by name)")
     p.add_argument("out", type=Path, help="capture session directory to write")
     p.add_argument("--empty", type=Path, help="folder of empty-plate photos, same count and order")
     p.add_argument("--intrinsics", type=Path, help="intrinsics JSON/YAML (n2d or ROS camera_info format)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing session")
+    p.add_argument("--board", type=Path, help="board.json of the printed board (from n2d board)")
     _add_config_options(p)
     p.set_defaults(func=cmd_capture_import)
 

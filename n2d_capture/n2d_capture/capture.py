@@ -8,7 +8,10 @@ gravity-aligned, plate-attached turntable frame, and masked. A view's pose comes
 composed with the rotation axis fitted over the whole sweep (`pose_from: axis`, the default: the fit
 averages the board's per-view noise; in the simulator it is ten times more accurate than single board
 poses), or from its own board pose (`pose_from: board`, or where the servo angle is unknown or does
-not follow the plate), or from the servo angle where the object hides the board.
+not follow the plate), or from the servo angle where the object hides the board. Objects that hide the
+board in most views, or captures without one, take `pose_from: colmap`: structure from motion on the
+object gives each view a board pose (see `sfm`), metric from the board where it shows or from a measured
+camera distance.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from n2d_capture.board import BoardSpec, CalibrationError, board_pose, detect_bo
 from n2d_capture.calibration import Intrinsics, calibrate
 from n2d_capture.masks import MaskConfig, ViewGeometry, foreground_mask, foreground_mask_no_reference, write_mask
 from n2d_capture.session import transforms_json
+from n2d_capture.sfm import COLMAP_DIR, SfmConfig, sfm_poses
 from n2d_capture.sweep import FrameSource, Rotator, SweepConfig, read_sweep, run_sweep
 from n2d_capture.turntable_frame import camera_pose, fit_turntable
 from n2d_common.config import to_dict
@@ -51,9 +55,12 @@ class CaptureConfig:
     """Where K comes from: the camera's CameraInfo, or a calibration from the board in the sweeps."""
     max_board_rms_px: float = 1.0
     """Board poses with a larger corner reprojection error (px) are not trusted."""
-    pose_from: Literal["axis", "board"] = "axis"
+    pose_from: Literal["axis", "board", "colmap"] = "axis"
     """axis: views with a servo angle are posed from it and the axis fitted over the sweep; board: each view
-    from its own board pose where the board is visible."""
+    from its own board pose where the board is visible; colmap: each view from structure from motion on the
+    object (for objects that hide the board; see `sfm`)."""
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    """Structure from motion, used with pose_from: colmap."""
 
     def __post_init__(self):
         if self.max_board_rms_px <= 0:
@@ -116,12 +123,20 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
         return p if p is not None and p.rms_px <= cfg.max_board_rms_px else None
 
     poses = [pose(d) for d in detections]
+    # A view's own pose: its board pose, or with colmap the board pose structure from motion gives it.
+    own = [p.T_cam_board if p else None for p in poses]
+    sfm = None
+    if cfg.pose_from == "colmap":
+        sfm = sfm_poses(directory, [v["file"] for v in views], images, intr, own, cfg.sfm,
+                        directory / COLMAP_DIR, progress)
+        own = sfm.T_cam_board
     # The empty plate shows the whole board: fit the axis on those views when the sweep has them.
-    fit_views = [empty[i] for i in sorted(empty)] if len(empty) >= 3 else views
-    fit_poses = [pose(empty_detections[v["index"]]) for v in fit_views] if fit_views is not views else poses
+    fit_views = [empty[i] for i in sorted(empty)] if len(empty) >= 3 and sfm is None else views
+    fit_poses = ([pose(empty_detections[v["index"]]) for v in fit_views] if fit_views is not views else None)
     fit_angles = [v["angle_rad"] for v in fit_views]  # None: an imported photo of unknown plate angle
-    fit = fit_turntable([p.T_cam_board if p else None for p in fit_poses], None if None in fit_angles else fit_angles)
-    unplaced = [v.get("source", v["file"]) for v, p in zip(views, poses) if p is None and v["angle_rad"] is None]
+    fit = fit_turntable([p.T_cam_board if p else None for p in fit_poses] if fit_poses is not None else own,
+                        None if None in fit_angles else fit_angles)
+    unplaced = [v.get("source", v["file"]) for v, T in zip(views, own) if T is None and v["angle_rad"] is None]
     if unplaced:
         raise CalibrationError(f"{len(unplaced)} view(s) have no board pose and no plate angle, so nothing can "
                                f"place them: {', '.join(unplaced)}",
@@ -131,8 +146,8 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
     for i, (view, img) in enumerate(zip(views, images)):
         progress(Progress(0.2 + 0.7 * i / len(views), "masking", message=f"view {i + 1}/{len(views)}"))
         source = ("axis" if cfg.pose_from == "axis" and view["angle_rad"] is not None and fit.servo_usable
-                  else "board" if poses[i] else "servo")
-        T_turntable_cam = camera_pose(fit, poses[i].T_cam_board if source == "board" else None, view["angle_rad"])
+                  else "servo" if own[i] is None else "colmap" if sfm else "board")
+        T_turntable_cam = camera_pose(fit, own[i] if source in ("board", "colmap") else None, view["angle_rad"])
         geometry = ViewGeometry(intr.K, inv_T(T_turntable_cam), cfg.board)
         ref = references.get(view["index"])
         mask = (foreground_mask(img, ref, geometry, cfg.masks) if ref is not None
@@ -155,12 +170,14 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
     info = {"board": cfg.board.to_dict(), "intrinsics": intr.to_dict(), "intrinsics_source": cfg.intrinsics,
             "turntable_fit": fit.to_dict(), "fit_on": "empty" if fit_views is not views else "images",
             "views": records, "empty_views": len(empty), "process_s": round(time.monotonic() - t0, 2)}
+    if sfm is not None:
+        info["sfm"] = sfm.to_dict()
     atomic_write_json(directory / "capture.json", info)
     write_png(directory / "contact_sheet.png", contact_sheet(sheet, cols=min(6, len(sheet)), thumb_width=240))
     inl = fit.inliers
     progress(Progress(1.0, "writing"))
     return {"views": len(records), "posed_from_axis": sources.count("axis"), "posed_from_board": sources.count("board"),
-            "posed_from_servo": sources.count("servo"),
+            "posed_from_servo": sources.count("servo"), "posed_from_colmap": sources.count("colmap"),
             "fit_rotation_residual_deg": float(np.nanmedian(fit.rotation_residual_deg[inl])),
             "fit_translation_residual_mm": float(np.nanmedian(fit.translation_residual_mm[inl])),
             "focal_px": intr.fx}

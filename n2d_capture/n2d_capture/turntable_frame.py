@@ -203,18 +203,16 @@ def _check_enough(Ts: np.ndarray, inliers: np.ndarray, valid: np.ndarray, min_vi
             "capture more views around the turn with the board visible")
 
 
-def _fit(Ts: np.ndarray, inliers: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """(T_cam_turntable, T_plate_board, reference view) fitted to the inlier views."""
-    idx = np.flatnonzero(inliers)
-    R, t = Ts[idx, :3, :3], Ts[idx, :3, 3]
-    i, j = np.triu_indices(len(idx), k=1)
+def turn_axis(Ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(axis, a point on it), in the camera frame, of the turns between (V, 4, 4) poses T_cam_X of a frame X
+    turning in front of a fixed camera (see `fit_turntable`); the axis is a unit vector of arbitrary sign."""
+    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+    i, j = np.triu_indices(len(Ts), k=1)
     R_ij = R[j] @ np.swapaxes(R[i], -1, -2)
     t_ij = t[j] - (R_ij @ t[i][..., None])[..., 0]
     cos = (np.trace(R_ij, axis1=-2, axis2=-1) - 1) / 2
     S = ((R_ij + np.swapaxes(R_ij, -1, -2)) / 2 - cos[:, None, None] * np.eye(3)).sum(0)
     axis = np.linalg.eigh(S)[1][:, -1]
-    if axis @ -R[:, :, 2].mean(0) < 0:  # board z points into the board: up is -z
-        axis = -axis
 
     # Fixed point of the pairs' motions, their rotations replaced by the fitted turn about the axis.
     skew = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
@@ -224,6 +222,16 @@ def _fit(Ts: np.ndarray, inliers: np.ndarray) -> tuple[np.ndarray, np.ndarray, i
             + (1 - np.cos(phi))[:, None, None] * (skew @ skew))
     M = np.eye(3) - turn
     centre = np.linalg.lstsq(np.einsum("pji,pjk->ik", M, M), np.einsum("pji,pj->i", M, t_ij), rcond=None)[0]
+    return axis, centre
+
+
+def _fit(Ts: np.ndarray, inliers: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(T_cam_turntable, T_plate_board, reference view) fitted to the inlier views."""
+    idx = np.flatnonzero(inliers)
+    R, t = Ts[idx, :3, :3], Ts[idx, :3, 3]
+    axis, centre = turn_axis(Ts[idx])
+    if axis @ -R[:, :, 2].mean(0) < 0:  # board z points into the board: up is -z
+        axis = -axis
     # Where the axis meets each board plane (n . (c + s a - t) = 0), averaged over views.
     normals = R[:, :, 2]
     s = np.einsum("vi,vi->v", normals, t - centre) / (normals @ axis)

@@ -156,7 +156,8 @@ class Scene:
         self.scene.collection.objects.link(self.room)
         self.room.rotation_euler[2] = math.radians(cfg.camera_azimuth_deg + 90.0)
         self._turntable()
-        self._board()
+        if cfg.board_visible:
+            self._board()
         self.objects = self._object()
         self._camera()
         self._lights()

@@ -48,6 +48,8 @@ class SimWorldConfig:
     """Height above the plate centre of the point the camera looks at, metres."""
     board: BoardSpec = field(default_factory=BoardSpec)
     """The ChArUco board on the plate (its plate_diameter_m sets the plate)."""
+    board_visible: bool = True
+    """Lay the board on the plate; False: the object stands on the bare plate (captures without a board)."""
     plate_height_m: float = 0.045
     """Height of the board surface above the table top, metres (plate plus turntable base)."""
     samples: int = 4
