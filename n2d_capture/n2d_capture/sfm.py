@@ -139,7 +139,7 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
     d[:min(8, len(intr.dist))] = np.ravel(intr.dist)[:8]
     K = intr.K
     # COLMAP puts pixel centres at +0.5; FULL_OPENCV takes OpenCV's k1 k2 p1 p2 k3 k4 k5 k6
-    params = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d[:4], d[4], d[5], d[6], d[7]]
+    params = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d]
     reader = pycolmap.ImageReaderOptions(camera_model="FULL_OPENCV", camera_params=",".join(map(str, params)),
                                          mask_path=str(work / "masks"))
     extraction = pycolmap.FeatureExtractionOptions(num_threads=cfg.threads or -1)
