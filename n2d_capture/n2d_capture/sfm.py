@@ -45,6 +45,8 @@ COLMAP_DIR = "colmap"
 """Folder of a session holding COLMAP's database, feature masks and sparse model."""
 
 _NO_SCALE = "the board shows in only {} posed view(s), so the scale of the views posed from the object is unknown"
+_SFM_HINT = ("the object needs texture, the views at most ~15 degrees apart and a fixed exposure; "
+             "or use the board (pose_from: axis)")
 _NO_SCALE_HINT = ("measure the distance from the camera to the plate centre and set sfm.camera_distance_m "
                   "(metres), or let the board show in 3+ views")
 
@@ -81,6 +83,8 @@ class SfmConfig:
         if self.camera_distance_m < 0 or self.change_threshold_dn <= 0 or self.mask_dilation_px < 0:
             raise ValueError("sfm.camera_distance_m and sfm.mask_dilation_px must be >= 0, "
                              "sfm.change_threshold_dn > 0")
+        if self.max_alignment_mm <= 0:
+            raise ValueError(f"sfm.max_alignment_mm must be > 0, got {self.max_alignment_mm}")
         if not 0.0 < self.min_registered <= 1.0:
             raise ValueError(f"sfm.min_registered must be in (0, 1], got {self.min_registered}")
 
@@ -168,9 +172,7 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
     models = pycolmap.incremental_mapping(database, image_dir, work / "sparse", options=options,
                                           next_image_callback=next_image)
     if not models:
-        raise CalibrationError("COLMAP could not pose the views from the object alone",
-                               "the object needs texture, the views at most ~15 degrees apart, and a fixed "
-                               "exposure; or use the board (pose_from: axis)")
+        raise CalibrationError("COLMAP could not pose the views from the object alone", _SFM_HINT)
     return max(models.values(), key=lambda r: r.num_reg_images())
 
 
@@ -263,14 +265,14 @@ def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np
     return s, R, md - s * R @ ms
 
 
-def _virtual_board(T_cam_world: np.ndarray, points_world: np.ndarray, camera_distance_m: float,
-                   ref: int) -> tuple[float, np.ndarray]:
+def _virtual_board(T_cam_world: np.ndarray, points_world: np.ndarray,
+                   camera_distance_m: float) -> tuple[float, np.ndarray]:
     """(metres per COLMAP unit, T_world_board) of a board lying on the plate under the object (see the module
     doc), from the registered views' poses (V, 4, 4) and the sparse points (P, 3)."""
     up, centre = turn_axis(T_cam_world)
     if up[2] > 0:  # the camera looks down at the plate: its optical axis (camera z) points against up
         up = -up
-    T_ref = T_cam_world[ref]
+    T_ref = T_cam_world[0]
     heights = (points_world @ T_ref[:3, :3].T + T_ref[:3, 3] - centre) @ up
     origin = centre + np.percentile(heights, 2) * up  # the camera's frame, COLMAP units
     scale = camera_distance_m / float(np.linalg.norm(origin))
@@ -296,9 +298,7 @@ def sfm_poses(image_dir: Path, names: list[str], images: Sequence[np.ndarray], i
     T_world, points, rms = turntable_adjust(model, names, intr)
     posed = [i for i, T in enumerate(T_world) if T is not None]
     if len(posed) < max(3, cfg.min_registered * len(names)):
-        raise CalibrationError(f"COLMAP posed {len(posed)} of {len(names)} views",
-                               "the object needs texture and the views at most ~15 degrees apart; "
-                               "or use the board (pose_from: axis)")
+        raise CalibrationError(f"COLMAP posed {len(posed)} of {len(names)} views", _SFM_HINT)
     both = [i for i in posed if board_poses[i] is not None]
     alignment = None
     if len(both) >= 3:
@@ -311,7 +311,7 @@ def sfm_poses(image_dir: Path, names: list[str], images: Sequence[np.ndarray], i
                                    "check the board spec (square size) and the intrinsics")
         scale, T_world_board, scale_from = s, inv_T(make_T(R, t)), "board"
     elif cfg.camera_distance_m > 0:
-        scale, T_units = _virtual_board(np.stack([T_world[i] for i in posed]), points, cfg.camera_distance_m, 0)
+        scale, T_units = _virtual_board(np.stack([T_world[i] for i in posed]), points, cfg.camera_distance_m)
         T_world_board, scale_from = _metric(T_units, scale), "camera_distance"
     else:
         raise CalibrationError(_NO_SCALE.format(len(both)), _NO_SCALE_HINT)
