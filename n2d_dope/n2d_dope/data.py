@@ -86,16 +86,23 @@ def instances(annotation: dict, object_name: str, min_visibility: float) -> list
 
 
 def affine(image_size: tuple[int, int], input_size: tuple[int, int], rng: np.random.Generator | None,
-           aug: AugmentConfig) -> np.ndarray:
-    """2 x 3 map from dataset pixels to network-input pixels: fit, then (with `rng`) zoom, rotate and shift."""
+           aug: AugmentConfig, centre: np.ndarray | None = None) -> np.ndarray:
+    """2 x 3 map from dataset pixels to network-input pixels, then (with `rng`) zoomed, rotated and shifted.
+
+    Without `centre` the frame is fitted to the input; with it (crop training) the frame keeps its scale and the
+    dataset pixel `centre` lands at the middle of the input."""
     (w, h), (iw, ih) = image_size, input_size
     s, angle, shift = min(iw / w, ih / h), 0.0, np.zeros(2)
+    if centre is not None:
+        s = 1.0
+    else:
+        centre = np.array([(w - 1) / 2, (h - 1) / 2])
     if rng is not None:
         s *= np.exp(rng.uniform(np.log(aug.scale[0]), np.log(aug.scale[1])))
         angle = rng.uniform(-aug.rotate_deg, aug.rotate_deg)
         shift = rng.uniform(-aug.shift, aug.shift, 2) * (iw, ih)
-    M = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle, s)
-    M[:, 2] += ((iw - 1) / 2 - (w - 1) / 2) + shift[0], ((ih - 1) / 2 - (h - 1) / 2) + shift[1]
+    M = cv2.getRotationMatrix2D((float(centre[0]), float(centre[1])), angle, s)
+    M[:, 2] += ((iw - 1) / 2 - centre[0]) + shift[0], ((ih - 1) / 2 - centre[1]) + shift[1]
     return M
 
 
@@ -146,17 +153,20 @@ class DopeSamples(torch.utils.data.Dataset):
         cfg, aug = self.cfg, self.cfg.augment
         rng = np.random.default_rng([cfg.seed, self.epoch, index]) if self.augment else None
         frame = self.frames[index]
-        annotation = json.loads(frame.annotation.read_text())
+        shown = instances(json.loads(frame.annotation.read_text()), self.object_name, cfg.min_visibility)
         rgb = read_rgb(frame.image)
         size = (rgb.shape[1], rgb.shape[0])
-        M = affine(size, cfg.input_size, rng, aug)
+        centre = None
+        if cfg.crop and shown:
+            centre = np.array(shown[int(rng.integers(len(shown))) if rng is not None else 0]["projected_cuboid"][8])
+        M = affine(size, cfg.input_size, rng, aug, centre)
         fill = tuple(int(v) for v in rng.integers(0, 256, 3)) if rng is not None else (127, 127, 127)
         image = cv2.warpAffine(rgb, M, cfg.input_size, flags=cv2.INTER_LINEAR, borderValue=fill)
         if rng is not None and rng.random() < aug.background_swap:
             image = self._swap_background(image, frame, M, rng)
         image = photometric(image, rng, aug) if rng is not None else image.astype(np.float32) / 255
         keypoints, visible = [], []
-        for obj in instances(annotation, self.object_name, cfg.min_visibility):
+        for obj in shown:
             keypoints.append(warp_points(M, obj["projected_cuboid"]))
             vis = np.array(obj.get("keypoint_visibility", [1] * 9), bool)
             visible.append(np.ones(9, bool) if cfg.hidden_keypoints else vis)

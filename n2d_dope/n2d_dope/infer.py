@@ -99,12 +99,26 @@ def group_instances(beliefs: np.ndarray, affinities: np.ndarray, cfg: DetectConf
     return groups
 
 
-def solve_pose(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float] | None:
+def solve_pose(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray,
+               inlier_px: float = 0.0) -> tuple[np.ndarray, float] | None:
     """Pose (4 x 4, object -> camera) from the found keypoints (9 x 2, NaN where missing) by SQPnP refined with
-    Levenberg-Marquardt, and the RMS reprojection error; None when fewer than 4 points or no solution in front."""
+    Levenberg-Marquardt, and the RMS reprojection error of the keypoints used; None when fewer than 4 points or
+    no solution in front.
+
+    With `inlier_px` > 0 and 5 or more points, keypoints further than that (pixels) from the pose that EPnP-RANSAC
+    finds for the most of them are left out first: a corner the network placed on the wrong side of the object
+    would otherwise pull the whole pose (OpenCV's RANSAC is seeded the same on every call)."""
     ok = np.isfinite(points_px).all(axis=1)
     if ok.sum() < 4:
         return None
+    if inlier_px > 0 and ok.sum() >= 5:
+        found, _, _, inliers = cv2.solvePnPRansac(cuboid_m[ok].astype(np.float64), points_px[ok].astype(np.float64),
+                                                  K, None, iterationsCount=100, reprojectionError=inlier_px,
+                                                  flags=cv2.SOLVEPNP_EPNP)
+        if found and inliers is not None and len(inliers) >= 4:
+            keep = np.zeros(len(ok), bool)
+            keep[np.flatnonzero(ok)[inliers[:, 0]]] = True
+            ok = keep
     obj, img = cuboid_m[ok].astype(np.float64), points_px[ok].astype(np.float64)
     found, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_SQPNP)
     if not found:
@@ -170,7 +184,7 @@ class DopeModel:
                 continue
             # map cell -> network-input pixel -> camera-image pixel (pixel centres: (u + 0.5) / s - 0.5)
             points = (to_image(group[:, :2]) + 0.5) / scale - 0.5
-            solved = solve_pose(points, self.cuboid_m, K)
+            solved = solve_pose(points, self.cuboid_m, K, self.cfg.ransac_px / scale)
             if solved is None:
                 continue
             T, error = solved

@@ -3,12 +3,13 @@
 `extract_mesh` finds the object in a search box on a coarse grid, evaluates the field exactly only
 in a narrow band around the surface on the fine grid (elsewhere the coarse values, trilinearly
 upsampled, carry the sign), runs marching cubes, keeps the largest component, smooths with Taubin's
-filter (which does not shrink), decimates to a face budget and fills holes. Fields map N x 3
-turntable-frame points (metres) to signed distances, negative inside.
+filter (which does not shrink), decimates to a face budget, removes pinched edges and
+closes holes. Fields map N x 3 turntable-frame points (metres) to signed distances, negative inside.
 """
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -119,9 +120,51 @@ def clean(mesh: trimesh.Trimesh, cfg: MeshConfig) -> trimesh.Trimesh:
         v, f = fast_simplification.simplify(mesh.vertices.astype(np.float32), mesh.faces.astype(np.int64),
                                             target_reduction=1.0 - cfg.target_faces / len(mesh.faces))
         mesh = trimesh.Trimesh(v.astype(np.float64), f, process=True)
-    trimesh.repair.fill_holes(mesh)
+    mesh = close_holes(remove_pinches(mesh))
     trimesh.repair.fix_normals(mesh)
     return mesh
+
+
+def remove_pinches(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh without the faces on edges that more than two faces share (decimation can pinch two sheets of a
+    thin part together there); `close_holes` then closes what they leave open."""
+    edges, count = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    pinched = edges[count > 2]
+    if not len(pinched):
+        return mesh
+    face_edges = mesh.edges_sorted.reshape(-1, 3, 2)
+    bad = np.zeros(len(mesh.faces), bool)
+    for edge in pinched:
+        bad |= (face_edges == edge).all(-1).any(-1)
+    return trimesh.Trimesh(mesh.vertices, mesh.faces[~bad], process=True)
+
+
+def close_holes(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Every boundary loop closed by a fan of triangles around its centroid, oriented like its neighbours."""
+    edges = mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    _, index, count = np.unique(np.sort(edges, axis=1), axis=0, return_index=True, return_counts=True)
+    outgoing = defaultdict(list)
+    for a, b in edges[index[count == 1]]:
+        outgoing[int(b)].append(int(a))  # a face runs its boundary edge a -> b, so the hole runs b -> a
+    loops = []
+    for start in list(outgoing):
+        path = [start]
+        while outgoing[path[-1]]:
+            nxt = outgoing[path[-1]].pop()
+            if nxt in path:  # a loop closed (where two holes touch, a vertex is passed twice)
+                k = path.index(nxt)
+                loops.append(path[k:])
+                del path[k + 1:]
+            else:
+                path.append(nxt)
+    vertices, faces = list(mesh.vertices), list(mesh.faces)
+    for loop in loops:
+        if len(loop) < 3:
+            continue
+        centre = len(vertices)
+        vertices.append(mesh.vertices[loop].mean(0))
+        faces += [(loop[i], loop[(i + 1) % len(loop)], centre) for i in range(len(loop))]
+    return trimesh.Trimesh(np.array(vertices), np.array(faces), process=True)
 
 
 def extract_mesh(field: Field, search_box: np.ndarray, cfg: MeshConfig,
