@@ -118,8 +118,17 @@ def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: Pro
 def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     if not cfg.refine.enabled:
         return mesh, None
-    mesh, stats = refine_surface(mesh, views, cfg.refine, progress)
-    return clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations)), stats
+    passes = []
+    for i in range(cfg.refine.passes):
+        def sub(p: Progress, i=i) -> None:
+            progress(replace(p, fraction=(i + p.fraction) / cfg.refine.passes))
+
+        on_plate = (mesh.vertices[:, 2] <= cfg.hull.plate_clearance_m + cfg.mesh.voxel_m) & \
+                   (mesh.vertex_normals[:, 2] < -0.5)
+        mesh, stats = refine_surface(mesh, views, cfg.refine, sub, fixed=on_plate)
+        mesh = clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations))
+        passes.append(stats)
+    return mesh, passes[-1] | {"passes": passes}
 
 
 def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: ProgressFn):
