@@ -171,6 +171,7 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     info = json.loads((dataset / "train_pbr" / "000000" / "scene_gt_info.json").read_text())
     visible = sum(i["visib_fract"] >= 0.25 for frame in info.values() for i in frame)
     assert evaluation["instances"] == visible and evaluation["frames"] == 4
+    assert 0 <= evaluation["false_detections"] and "false detections" in result.stdout
     assert (out / "eval_synthetic.png").is_file()
 
     # a turntable session as a test set: the true pose is the camera pose composed with the object's place

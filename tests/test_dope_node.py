@@ -111,7 +111,7 @@ def test_dope_node_live(dope_model, ros_domain):
     spec = load("dope")
     # thresholds low enough that even this barely trained model finds (meaningless) boxes: the pose path runs
     spec.nodes[0].parameters.update({"detect.peak_threshold": 0.01, "detect.min_keypoints": 4,
-                                     "detect.affinity_threshold": 3.2})
+                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2})
     with Launch(spec, {"models": str(model_dir), "max_rate_hz": str(RATE_HZ)}, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
             image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)

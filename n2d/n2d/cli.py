@@ -310,7 +310,8 @@ def cmd_evaluate(args) -> int:
         name = args.name or "synthetic"
         r = evaluate(args.model, args.test, name=name, precision=args.precision, max_frames=args.frames,
                      progress=_progress_bar("evaluate"))
-    print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['images']} images ({args.precision})")
+    print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['images']} images ({args.precision}), "
+          f"{r['false_detections']} false detections")
     print(f"evaluate: ADD-S accuracy {100 * r['adds_accuracy_10pct']:.1f} %, ADD {100 * r['add_accuracy_10pct']:.1f} % "
           f"(10 % of the {r['diameter_mm']:.0f} mm diameter); AUC to 10 cm: ADD-S {100 * r['adds_auc_10cm']:.1f}, "
           f"ADD {100 * r['add_auc_10cm']:.1f}")

@@ -6,8 +6,9 @@
   where the object stands on the plate.
 
 Each true instance is matched to the detection with the smallest ADD-S; a missed instance counts as an infinite
-error. Results go to `eval.json` in the DOPE model directory under NAME/PRECISION, and `eval_NAME.png` shows the
-detections (cuboid: red front, green rear) over the true cuboids (white).
+error, and a detection within 10 % of the diameter (ADD-S) of no instance is a false detection. Results go to
+`eval.json` in the DOPE model directory under NAME/PRECISION, and `eval_NAME.png` shows the detections (cuboid: red
+front, green rear) over the true cuboids (white).
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
     """Run the model over `items` ((rgb, K, true poses) per image), match each true instance to the detection
     with the smallest ADD-S, and summarise; also returns overlays of up to OVERLAYS evenly spread images."""
     add_errors, adds_errors, network_s, post_s, overlays = [], [], [], [], []
+    false_detections = 0
     pick = set(np.linspace(0, total - 1, min(OVERLAYS, total)).round().astype(int).tolist())
     eta = Eta()
     for i, (rgb, K, truths) in enumerate(items):
@@ -90,11 +92,13 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
             adds_errors.append(err_s)
             add_errors.append(add(detections[j].T_cam_obj, T, points))
             frame_errors.append(err_s)
+        false_detections += sum(all(add_s(d.T_cam_obj, T, points) >= 0.1 * diameter for T in truths)
+                                for d in detections)
         if i in pick:
             overlays.append(_overlay(rgb, K, truths, detections, model.cuboid_m, frame_errors))
         progress(Progress((i + 1) / total, f"evaluating {name}", eta((i + 1) / total), f"image {i + 1}/{total}"))
     result = summarize(add_errors, adds_errors, diameter)
-    result.update({"images": total, "precision": model.precision,
+    result.update({"images": total, "precision": model.precision, "false_detections": false_detections,
                    "network_ms_mean": 1000 * float(np.mean(network_s)) if network_s else None,
                    "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None})
     return result, overlays

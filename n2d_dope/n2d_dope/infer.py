@@ -17,6 +17,7 @@ import numpy as np
 
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ConfigError
+from n2d_common.frames import project
 from n2d_dope.config import DetectConfig
 from n2d_dope.export import INPUT, OUTPUTS, session
 from n2d_dope.network import INPUT_MULTIPLE
@@ -184,10 +185,14 @@ class DopeModel:
                 continue
             # map cell -> network-input pixel -> camera-image pixel (pixel centres: (u + 0.5) / s - 0.5)
             points = (to_image(group[:, :2]) + 0.5) / scale - 0.5
-            solved = solve_pose(points, self.cuboid_m, K, self.cfg.ransac_px / scale)
+            inlier_px = self.cfg.ransac_px / scale
+            solved = solve_pose(points, self.cuboid_m, K, inlier_px)
             if solved is None:
                 continue
             T, error = solved
+            if inlier_px > 0 and np.sum(np.linalg.norm(project(K, T, self.cuboid_m) - points, axis=1) < inlier_px) \
+                    < self.cfg.min_inliers:
+                continue
             detections.append(Detection(self.name, T, float(np.nansum(group[:, 2]) / 9), points, error))
         self.timing.postprocess = time.perf_counter() - t0
         return detections
