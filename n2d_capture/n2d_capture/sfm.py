@@ -146,7 +146,11 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
     params = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d]
     reader = pycolmap.ImageReaderOptions(camera_model="FULL_OPENCV", camera_params=",".join(map(str, params)),
                                          mask_path=str(work / "masks"))
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=cfg.threads or -1)
+    # SIFT and brute-force SIFT matching named explicitly: COLMAP's learned extractors and matchers (ALIKED,
+    # LightGlue) fetch their weights from the internet on first use, and a vocabulary-tree pairing would fetch
+    # its tree; the imported pair list below needs neither
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=cfg.threads or -1,
+                                                   type=pycolmap.FeatureExtractorType.SIFT)
     extraction.sift.max_num_features = cfg.max_features
     progress(Progress(0.05, "sfm", message="COLMAP: SIFT features"))
     pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
@@ -156,7 +160,9 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
              for k in range(1, min(cfg.neighbours, (n - 1) // 2 or 1) + 1)}
     (work / "pairs.txt").write_text("".join(f"{a} {b}\n" for a, b in sorted(pairs)))
     progress(Progress(0.1, "sfm", message=f"COLMAP: matching {len(pairs)} pairs"))
-    pycolmap.match_image_pairs(database, pycolmap.FeatureMatchingOptions(num_threads=cfg.threads or -1),
+    matching = pycolmap.FeatureMatchingOptions(num_threads=cfg.threads or -1,
+                                               type=pycolmap.FeatureMatcherType.SIFT_BRUTEFORCE)
+    pycolmap.match_image_pairs(database, matching,
                                pycolmap.ImportedPairingOptions(match_list_path=str(work / "pairs.txt")),
                                device=pycolmap.Device.cpu)
     options = pycolmap.IncrementalPipelineOptions(ba_refine_focal_length=False, ba_refine_principal_point=False,
