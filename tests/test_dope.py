@@ -3,6 +3,7 @@ peaks -> instances -> PnP gives back the true pose), metrics, training with canc
 export, evaluation, the `n2d train` / `n2d evaluate` CLI and bad input."""
 
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -187,6 +188,34 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
         evaluate_session(out, session)
     on_plate = evaluate_session(out, session, T_turntable_obj=truth.T_turntable_obj)
     assert on_plate["instances"] == on_plate["views"] == 3
+
+
+def test_fine_tune_on_two_datasets(dataset, tmp_path):
+    """A training can start from a trained model's weights and use the frames of two datasets."""
+    cfg = TrainConfig.preset("tiny")
+    cfg.epochs, cfg.int8 = 1, False
+    base = train(dataset, tmp_path / "base", cfg)
+    second = tmp_path / "second"
+    shutil.copytree(dataset, second)
+    cfg.init_model, cfg.lr = str(tmp_path / "base"), 1e-12  # steps that barely move the weights
+    tuned = train([dataset, second], tmp_path / "tuned", cfg)
+    assert tuned["train_frames"] == 2 * base["train_frames"]
+    inputs = read_manifest(tmp_path / "tuned")["inputs"]
+    assert {"dataset", "dataset_2", "init_model"} <= set(inputs)
+    weights = [torch.load(tmp_path / m / "checkpoint.pt", weights_only=False)["model"] for m in ("base", "tuned")]
+    learned = [k for k in weights[0] if "running" not in k and "num_batches" not in k]
+    assert max(float((weights[0][k] - weights[1][k]).abs().max()) for k in learned) < 1e-6
+
+    cfg.stages = 2
+    with pytest.raises(ConfigError, match="stages"):
+        train(dataset, tmp_path / "x", cfg)
+    cfg.stages, cfg.init_model = 1, ""
+    manifest = json.loads((second / "n2d.json").read_text())
+    manifest["config"]["camera"]["focal_px"] = 600.0
+    (second / "n2d.json").write_text(json.dumps(manifest))
+    with pytest.raises(ConfigError, match="same camera"):
+        train([dataset, second], tmp_path / "y", cfg)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
 def test_cli_train_and_bad_input(dataset, tmp_path):

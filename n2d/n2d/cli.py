@@ -277,6 +277,8 @@ def cmd_train(args) -> int:
         cfg.epochs = args.epochs
     if args.minutes is not None:
         cfg.max_minutes = args.minutes
+    if args.init:
+        cfg.init_model = str(args.init.absolute())
     cfg.__post_init__()
     cancel = threading.Event()
     try:
@@ -430,9 +432,12 @@ def build_parser() -> argparse.ArgumentParser:
                        "Backbones: lite (EfficientNet-Lite0 with ImageNet weights, real time on a CPU) or vgg (DOPE as "
                        "published, needs a GPU). CUDA when present. Ctrl-C saves a checkpoint; the same command "
                        "resumes.")
-    p.add_argument("dataset", type=Path, help="dataset directory (from n2d dataset)")
+    p.add_argument("dataset", type=Path, nargs="+", help="dataset directory (from n2d dataset); several, rendered "
+                   "with the same camera, train on all their frames")
     p.add_argument("out", type=Path, help="DOPE model directory to write")
     p.add_argument("--object", help="object to train for (default: the dataset's only object)")
+    p.add_argument("--init", type=Path, help="start from this DOPE model's weights instead of ImageNet's "
+                   "(fine-tune it on more or newer data)")
     p.add_argument("--backbone", choices=["lite", "vgg", "tiny"], default="lite",
                    help="preset: lite (CPU), vgg (DOPE as published: 6 stages, batch 64, lr 1e-4), tiny (tests)")
     p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")

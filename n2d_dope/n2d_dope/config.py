@@ -58,6 +58,9 @@ class TrainConfig:
     object (then zoomed, rotated and shifted by the augmentation), rather than on whole frames fitted to
     input_size. The network is fully convolutional, so it still runs on whole images; a 160 x 160 window costs a
     third of a 320 x 240 frame, and the object keeps the size in pixels it has at inference."""
+    init_model: str = ""
+    """A DOPE model directory (from n2d train) whose weights this training starts from instead of ImageNet's:
+    fine-tune a model on more or newer data (same backbone and stages). Empty: start from ImageNet."""
     epochs: int = 30
     """Passes over the training frames."""
     max_minutes: float = 0.0

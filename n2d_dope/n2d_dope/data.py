@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from n2d_common.contracts import open_stage
-from n2d_common.errors import ContractError
+from n2d_common.errors import ConfigError, ContractError
 from n2d_dope.config import AugmentConfig, TrainConfig
 from n2d_dope.network import STRIDE
 from n2d_dope.targets import make_targets
@@ -70,6 +70,32 @@ def open_dataset(directory: str | Path) -> DatasetInfo:
                             "generate the dataset with n2d dataset")
     return DatasetInfo(directory, frames, cuboids, list(extra["cuboid_order"]), float(camera["focal_px"]),
                        (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]))
+
+
+def open_datasets(directories: list[str | Path]) -> DatasetInfo:
+    """Several complete n2d datasets as one: their frames in the order given, their objects together.
+
+    They must share the camera (the model learns objects at the sizes in pixels they had) and the cuboid of every
+    object they have in common; `directory` is the first one's."""
+    infos = [open_dataset(d) for d in directories]
+    if not infos:
+        raise ConfigError("no dataset given", "name at least one dataset directory (from n2d dataset)")
+    first = infos[0]
+    cuboids, models = dict(first.cuboid_points_m), dict(first.models)
+    for info in infos[1:]:
+        camera, first_camera = (info.focal_px, info.image_size), (first.focal_px, first.image_size)
+        if camera != first_camera or info.cuboid_order != first.cuboid_order:
+            raise ConfigError(f"{info.directory} has camera (focal px, size) {camera} and corner order "
+                              f"{info.cuboid_order}, {first.directory} {first_camera} and {first.cuboid_order}",
+                              "train on datasets rendered with the same camera config")
+        for name, cuboid in info.cuboid_points_m.items():
+            if name in cuboids and not np.allclose(cuboids[name], cuboid, atol=1e-6):
+                raise ConfigError(f"{name} has another cuboid in {info.directory} than in {first.directory}",
+                                  "train on datasets rendered from the same model of the object")
+            cuboids[name] = cuboid
+        models.update({k: v for k, v in info.models.items() if k not in models})
+    return DatasetInfo(first.directory, [f for info in infos for f in info.frames], cuboids, first.cuboid_order,
+                       first.focal_px, first.image_size, models)
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -20,12 +20,12 @@ import numpy as np
 import torch
 
 from n2d_common.config import to_dict
-from n2d_common.contracts import atomic_write_json, stage_output
+from n2d_common.contracts import atomic_write_json, open_stage, stage_output
 from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, resolve_device
 from n2d_dope.config import TrainConfig
-from n2d_dope.data import DatasetInfo, DopeSamples, Frame, instances, open_dataset
+from n2d_dope.data import DatasetInfo, DopeSamples, Frame, instances, open_datasets
 from n2d_dope.export import export_onnx, quantize_int8
 from n2d_dope.network import DopeNet, parameter_count
 
@@ -92,32 +92,51 @@ def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: in
             yield b, tuple(torch.from_numpy(x) for x in batch)
 
 
-def _identity(cfg: TrainConfig, object_name: str, dataset: Path) -> dict:
+def _identity(cfg: TrainConfig, object_name: str, datasets: list[Path]) -> dict:
     config = {k: v for k, v in to_dict(cfg).items() if k not in _NOT_IDENTITY}
-    return {"object": object_name, "dataset": str(dataset.absolute()), "train": config}
+    names = [str(d.absolute()) for d in datasets]
+    return {"object": object_name, "dataset": names[0] if len(names) == 1 else names, "train": config}
 
 
-def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = None, *, object_name: str | None = None,
-          overwrite: bool = False, progress: ProgressFn = no_progress,
+def initial_weights(cfg: TrainConfig) -> dict | None:
+    """The weights of `cfg.init_model` to start from (None without one), checked to fit the configured network."""
+    if not cfg.init_model:
+        return None
+    open_stage(cfg.init_model, "dope_model")
+    model = json.loads((Path(cfg.init_model) / "config.json").read_text())
+    if (model["backbone"], model["stages"]) != (cfg.backbone, cfg.stages):
+        raise ConfigError(f"init_model {cfg.init_model} is a {model['backbone']} network with {model['stages']} "
+                          f"stages, this training a {cfg.backbone} one with {cfg.stages}",
+                          "set the same backbone and stages, or another init_model")
+    return torch.load(Path(cfg.init_model) / "checkpoint.pt", map_location="cpu", weights_only=False)["model"]
+
+
+def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: TrainConfig | None = None, *,
+          object_name: str | None = None, overwrite: bool = False, progress: ProgressFn = no_progress,
           cancel: threading.Event | None = None) -> dict:
-    """Train DOPE for `object_name` on the dataset and write the DOPE model directory `out`; returns the summary.
+    """Train DOPE for `object_name` on the dataset (or the frames of several, rendered with the same camera) and
+    write the DOPE model directory `out`; returns the summary.
 
     Raises Cancelled (after saving the checkpoint) when `cancel` is set; the same call resumes.
     """
     cfg = cfg or TrainConfig()
-    info = open_dataset(dataset_dir)
+    datasets = [dataset_dir] if isinstance(dataset_dir, (str, Path)) else list(dataset_dir)
+    info = open_datasets(datasets)
+    initial = initial_weights(cfg)
     name = select_object(info, object_name)
     train_frames, held_frames = split_frames(info, name, cfg)
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    identity = _identity(cfg, name, info.directory)
+    identity = _identity(cfg, name, [Path(d) for d in datasets])
     with stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage:
         ckpt_path = stage.path / "checkpoint.pt"
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
-        net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None,
+        net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None and initial is None,
                       frozen_blocks=cfg.frozen_blocks).to(device)
+        if state is None and initial is not None:
+            net.load_state_dict(initial)
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
         steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
         total = cfg.epochs * steps_per_epoch
@@ -174,7 +193,10 @@ def train(dataset_dir: str | Path, out: str | Path, cfg: TrainConfig | None = No
         summary = _finish(stage.path, net, info, name, train_frames, held_frames, cfg, pos, total, device, progress)
         summary["parameters"] = parameter_count(net)
         atomic_write_json(stage.path / "training.json", summary)
-        stage.finish(config=identity, inputs={"dataset": info.directory}, extra={"object": name,
+        inputs = {"dataset" if i == 0 else f"dataset_{i + 1}": Path(d) for i, d in enumerate(datasets)}
+        if cfg.init_model:
+            inputs["init_model"] = Path(cfg.init_model)
+        stage.finish(config=identity, inputs=inputs, extra={"object": name,
                                                                                   "backbone": cfg.backbone})
     return summary
 
