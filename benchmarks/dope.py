@@ -1,7 +1,7 @@
 """Benchmark of the DOPE stage: inference speed of both networks, the live node, and pose accuracy.
 
     python benchmarks/dope.py --model DOPE_MODEL --test TEST_DATASET [--views 24] [--node-seconds 20]
-    python benchmarks/dope.py --train TRAIN_DATASET --minutes 60 --test TEST_DATASET
+    python benchmarks/dope.py --train TRAIN_DATASET [TRAIN_DATASET ...] --minutes 60 --test TEST_DATASET
 
 One table:
 - per-frame inference time (onnxruntime, this CPU, 640x480 input) of the VGG DOPE network as published and of the
@@ -12,7 +12,7 @@ One table:
 - ADD / ADD-S accuracy (10 % of the diameter) and AUC of the light model, fp32 and INT8, on the held-out
   synthetic test dataset, and on a turntable sweep captured like `n2d capture` does it (servo emulator + real
   driver + sim camera; ground truth from the board's camera poses and the object's place on the plate).
-With `--train`, the light model is first trained on TRAIN_DATASET for `--minutes` (the CPU-hour of the issue).
+With `--train`, the light model is first trained on the TRAIN_DATASETs for `--minutes` (the CPU-hour of the issue).
 """
 
 from __future__ import annotations
@@ -226,7 +226,8 @@ def accuracy_rows(model: Path, test: Path, tmp: Path, views: int) -> list[tuple[
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, help="a trained light DOPE model directory")
-    parser.add_argument("--train", type=Path, help="train the light model on this dataset first")
+    parser.add_argument("--train", type=Path, nargs="+", help="train the light model on this dataset (or these, "
+                        "rendered with the same camera) first")
     parser.add_argument("--minutes", type=float, default=60.0, help="training time with --train")
     parser.add_argument("--test", type=Path, required=True, help="held-out test dataset (another seed)")
     parser.add_argument("--views", type=int, default=24, help="turntable sweep views (0: skip the sweep)")
