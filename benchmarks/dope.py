@@ -249,8 +249,10 @@ def main() -> None:
             cfg = TrainConfig(epochs=1000, max_minutes=args.minutes)
             train(args.train, model, cfg)
         summary = json.loads((model / "training.json").read_text())
+        init = json.loads((model / "n2d.json").read_text())["inputs"].get("init_model")
         rows.append(("light model training (CPU)", f"{summary['train_seconds'] / 60:.0f} min",
-                     f"{summary['steps']} steps on {summary['train_frames']} frames",
+                     f"{summary['steps']} steps on {summary['train_frames']} frames"
+                     + (f", fine-tuned from {Path(init).name}" if init else ""),
                      f"held-out loss {summary['held_out_loss']:.5f}" if summary["held_out_loss"] else ""))
         rows += speed_rows(model, args.test, tmp, args.runs)
         if args.node_seconds > 0:

@@ -99,11 +99,12 @@ def test_targets_decode_to_the_true_pose(dataset):
 
 @pytest.mark.parametrize("crop", [True, False])
 def test_augmented_targets_follow_the_image(dataset, crop):
-    """Whole frames fitted to the input, or windows cut around an instance (the lite default): the image is
-    reproducible per (seed, epoch, index) and the centroid target peaks where the warped annotation says."""
+    """Whole frames fitted to the input, or windows cut around an instance (the lite default; here enlarged by a
+    zoom): the image is reproducible per (seed, epoch, index) and the centroid target peaks where the warped
+    annotation says."""
     from n2d_dope.data import affine, instances
 
-    cfg = TrainConfig() if crop else TrainConfig(crop=False, input_size=(320, 240))
+    cfg = TrainConfig(zoom=1.5) if crop else TrainConfig(crop=False, input_size=(320, 240))
     (w, h), info = cfg.input_size, open_dataset(dataset)
     samples = DopeSamples(info.frames, "box", cfg, augment=True)
     image, beliefs, affinities = samples[0]
@@ -117,7 +118,7 @@ def test_augmented_targets_follow_the_image(dataset, crop):
     rng = np.random.default_rng([0, 0, 0])
     shown = instances(json.loads(info.frames[0].annotation.read_text()), "box", cfg.min_visibility)
     centre = np.array(shown[int(rng.integers(len(shown)))]["projected_cuboid"][8]) if crop else None
-    M = affine((320, 240), cfg.input_size, rng, cfg.augment, centre)
+    M = affine((320, 240), cfg.input_size, rng, cfg.augment, centre, cfg.zoom)
     centres = to_map(warp_points(M, np.array([o["projected_cuboid"][8] for o in shown])))
     peak = np.unravel_index(int(beliefs[8].argmax()), beliefs[8].shape)[::-1]
     assert min(np.linalg.norm(c - peak) for c in centres) < 1.0

@@ -17,6 +17,7 @@ from n2d_common.config import to_dict
 from n2d_common.contracts import open_stage, write_manifest
 from n2d_common.errors import ConfigError, ContractError
 from n2d_common.ros import background_node, wait_future
+from n2d_dope.config import TIMED_EPOCHS
 from n2d_interfaces.srv import PipelineStatus, StartPipeline
 
 
@@ -37,6 +38,10 @@ def test_config_checks_and_test_sweep_angles():
     assert cfg.capture_overrides(test=False)["sweep"] == {"frame_timeout_s": 30.0, "views": 24}
     test = cfg.capture_overrides(test=True)["sweep"]
     assert test["views"] == 8 and math.isclose(test["start_angle_rad"], math.pi / 24)  # between the object views
+    # train_minutes is how long training runs: the preset's epochs do not cut it short, given epochs still do
+    assert PipelineConfig().train_overrides() == {}
+    assert PipelineConfig(train_minutes=8.0).train_overrides() == {"epochs": TIMED_EPOCHS, "max_minutes": 8.0}
+    assert PipelineConfig(train_minutes=8.0, train={"epochs": 300}).train_overrides()["epochs"] == 300
 
 
 def test_bad_input_is_refused_before_any_stage_runs(tmp_path):

@@ -269,7 +269,7 @@ def cmd_dataset(args) -> int:
 def cmd_train(args) -> int:
     import threading
 
-    from n2d_dope.config import TrainConfig
+    from n2d_dope.config import TIMED_EPOCHS, TrainConfig
     from n2d_dope.train import train
 
     cfg = _config(TrainConfig, args, base=TrainConfig.preset(args.backbone))
@@ -277,6 +277,7 @@ def cmd_train(args) -> int:
         cfg.epochs = args.epochs
     if args.minutes is not None:
         cfg.max_minutes = args.minutes
+        cfg.epochs = args.epochs or TIMED_EPOCHS
     if args.init:
         cfg.init_model = str(args.init.absolute())
     cfg.__post_init__()
@@ -441,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backbone", choices=["lite", "vgg", "tiny"], default="lite",
                    help="preset: lite (CPU), vgg (DOPE as published: 6 stages, batch 64, lr 1e-4), tiny (tests)")
     p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")
-    p.add_argument("--minutes", type=float, help="stop training after this many minutes and export what it has")
+    p.add_argument("--minutes", type=float, help="train for this many minutes (the learning rate anneals over "
+                   "them; the preset's epochs no longer stop it, an explicit --epochs still does), then export")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model, or discard unfinished "
                    "training of another config")
     _add_config_options(p)

@@ -39,6 +39,7 @@ from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, read_manifest, write_manifest
 from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Progress, ProgressFn, no_progress
+from n2d_dope.config import TIMED_EPOCHS
 
 STAGES = ("capture", "test_capture", "reconstruct", "dataset", "test_dataset", "train", "evaluate")
 """The stages of a run, in order."""
@@ -77,7 +78,8 @@ class PipelineConfig:
     preset: Literal["lite", "vgg", "tiny"] = "lite"
     """DOPE training preset (lite: CPU, vgg: DOPE as published, GPU; tiny: tests)."""
     train_minutes: float = 0.0
-    """Wall-time limit of training (the learning rate anneals to fit it); 0: the preset's epochs."""
+    """Minutes of training (the learning rate anneals over them; the preset's epochs no longer stop it, an epochs
+    value in `train` still does); 0: the preset's epochs."""
     precisions: list[str] = field(default_factory=lambda: ["fp32", "int8"])
     """ONNX models to evaluate (int8 only where the training exported one)."""
     capture: dict = field(default_factory=dict)
@@ -114,7 +116,9 @@ class PipelineConfig:
         return {**self.capture, "sweep": {**self.capture.get("sweep", {}), **sweep}}
 
     def train_overrides(self) -> dict:
-        return {**self.train, **({"max_minutes": self.train_minutes} if self.train_minutes else {})}
+        if not self.train_minutes:
+            return dict(self.train)
+        return {"epochs": TIMED_EPOCHS, **self.train, "max_minutes": self.train_minutes}
 
 
 class StageRunner(Protocol):

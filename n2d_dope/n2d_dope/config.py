@@ -39,6 +39,11 @@ class AugmentConfig:
                 raise ValueError(f"augment.{name} is a probability in 0..1, got {getattr(self, name)}")
 
 
+TIMED_EPOCHS = 100_000
+"""Epochs of a run meant to last a given time (`n2d train --minutes`, a pipeline's `train_minutes`) rather than a
+number of passes: `max_minutes` ends it, and the learning rate anneals over those minutes."""
+
+
 @dataclass
 class TrainConfig:
     """Training of one DOPE network for one object."""
@@ -58,6 +63,10 @@ class TrainConfig:
     object (then zoomed, rotated and shifted by the augmentation), rather than on whole frames fitted to
     input_size. The network is fully convolutional, so it still runs on whole images; a 160 x 160 window costs a
     third of a 320 x 240 frame, and the object keeps the size in pixels it has at inference."""
+    zoom: float = 1.0
+    """Crop training: windows are cut from the frames enlarged by this factor, so the model works at zoom times the
+    dataset's focal length (`trained_focal_px`; detection resizes camera images to match). Objects then cover
+    zoom^2 more map cells, which places corners more precisely, and the network costs zoom^2 more per image."""
     init_model: str = ""
     """A DOPE model directory (from n2d train) whose weights this training starts from instead of ImageNet's:
     fine-tune a model on more or newer data (same backbone and stages). Empty: start from ImageNet."""
@@ -108,6 +117,8 @@ class TrainConfig:
         for name in ("epochs", "batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.zoom <= 0 or (self.zoom != 1.0 and not self.crop):
+            raise ValueError(f"zoom must be positive, and other than 1 only with crop training, got {self.zoom}")
         if self.lr <= 0 or self.sigma_cells <= 0 or self.affinity_radius_cells <= 0:
             raise ValueError("lr, sigma_cells and affinity_radius_cells must be positive")
         if not 0.0 <= self.holdout < 0.5:

@@ -112,15 +112,15 @@ def instances(annotation: dict, object_name: str, min_visibility: float) -> list
 
 
 def affine(image_size: tuple[int, int], input_size: tuple[int, int], rng: np.random.Generator | None,
-           aug: AugmentConfig, centre: np.ndarray | None = None) -> np.ndarray:
+           aug: AugmentConfig, centre: np.ndarray | None = None, zoom: float = 1.0) -> np.ndarray:
     """2 x 3 map from dataset pixels to network-input pixels, then (with `rng`) zoomed, rotated and shifted.
 
-    Without `centre` the frame is fitted to the input; with it (crop training) the frame keeps its scale and the
-    dataset pixel `centre` lands at the middle of the input."""
+    Without `centre` the frame is fitted to the input; with it (crop training) the frame is scaled by `zoom` and
+    the dataset pixel `centre` lands at the middle of the input."""
     (w, h), (iw, ih) = image_size, input_size
     s, angle, shift = min(iw / w, ih / h), 0.0, np.zeros(2)
     if centre is not None:
-        s = 1.0
+        s = zoom
     else:
         centre = np.array([(w - 1) / 2, (h - 1) / 2])
     if rng is not None:
@@ -185,7 +185,7 @@ class DopeSamples(torch.utils.data.Dataset):
         centre = None
         if cfg.crop and shown:
             centre = np.array(shown[int(rng.integers(len(shown))) if rng is not None else 0]["projected_cuboid"][8])
-        M = affine(size, cfg.input_size, rng, aug, centre)
+        M = affine(size, cfg.input_size, rng, aug, centre, cfg.zoom)
         fill = tuple(int(v) for v in rng.integers(0, 256, 3)) if rng is not None else (127, 127, 127)
         image = cv2.warpAffine(rgb, M, cfg.input_size, flags=cv2.INTER_LINEAR, borderValue=fill)
         if rng is not None and rng.random() < aug.background_swap:

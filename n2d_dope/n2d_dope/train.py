@@ -153,6 +153,11 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         samples = DopeSamples(train_frames, name, cfg, augment=True)
         eta, t_start, last_save = Eta(), time.monotonic() - pos["elapsed_s"], time.monotonic()
         limit_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
+
+        def done(p: dict) -> float:
+            """How far the run is: the larger of its steps and its time limit used."""
+            return min(1.0, max(p["step"] / total, p["elapsed_s"] / limit_s))
+
         net.train()
         stopped_early = False
         while pos["step"] < total and not stopped_early:
@@ -162,7 +167,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             epoch_losses = []
             for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
                 for group in opt.param_groups:
-                    group["lr"] = learning_rate(cfg, max(pos["step"] / total, pos["elapsed_s"] / limit_s))
+                    group["lr"] = learning_rate(cfg, done(pos))
                 loss = dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device))
                 if not torch.isfinite(loss):
                     raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
@@ -173,7 +178,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
                 pos["step"] += 1
                 pos["elapsed_s"] = time.monotonic() - t_start
                 epoch_losses.append(loss.item())
-                fraction = pos["step"] / total
+                fraction = done(pos)
                 progress(Progress(0.95 * fraction, "training", eta(fraction),
                                   f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {loss.item():.5f}",
                                   {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": loss.item()}))
@@ -238,7 +243,7 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
         "stride": 8,
         "map_cell_centre": "map cell j is centred on input pixel 8 j + 3.5",
         "trained_input_size": list(cfg.input_size),
-        "trained_focal_px": info.focal_px * (1.0 if cfg.crop else min(cfg.input_size[0] / info.image_size[0],
+        "trained_focal_px": info.focal_px * (cfg.zoom if cfg.crop else min(cfg.input_size[0] / info.image_size[0],
                                                                       cfg.input_size[1] / info.image_size[1])),
         "cuboid_order": info.cuboid_order,
         "cuboid_points_m": info.cuboid_points_m[name].tolist(),
