@@ -242,11 +242,11 @@ def main() -> None:
         model = args.model
         rows = []
         if args.train:
-            from n2d_dope.config import TrainConfig
+            from n2d_dope.config import TIMED_EPOCHS, TrainConfig
             from n2d_dope.train import train
 
             model = model or tmp / "dope"
-            cfg = TrainConfig(epochs=1000, max_minutes=args.minutes)
+            cfg = TrainConfig(epochs=TIMED_EPOCHS, max_minutes=args.minutes)
             train(args.train, model, cfg)
         summary = json.loads((model / "training.json").read_text())
         init = json.loads((model / "n2d.json").read_text())["inputs"].get("init_model")
