@@ -22,11 +22,12 @@ from n2d_dataset.check import check_dataset, frames, pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.generate import generate_dataset
 from n2d_dataset.models import load_models
+from n2d_dataset.textures import FIDUCIAL_DICTIONARIES, random_fiducial_sheet
 from n2d_sim.objects import sample_object_dir
 
 MODELS = [sample_object_dir("box"), sample_object_dir("bottle")]
 SMALL = ["frames=3", "camera.width=320", "camera.height=240", "camera.focal_px=300", "render.samples=4",
-         "scene.in_hand=0.5", "scene.distractors=[2,4]"]
+         "scene.in_hand=0.5", "scene.distractors=[2,4]", "scene.boards=1.0"]
 
 
 def small_config(*more: str) -> DatasetConfig:
@@ -73,6 +74,27 @@ def test_annotations_match_the_meshes(dataset):
     assert report["depth_error_mm"]["mean"] < 1.0 and report["depth_error_mm"]["p95"] < 1.0, report
     assert report["visib_fract_error"]["max"] < 0.03, report
     assert report["dope_vs_pose_px_max"] < 1e-3, report
+
+
+def _fiducial_markers(gray: np.ndarray) -> int:
+    """Most ArUco markers found in `gray` by any of the dictionaries fiducial sheets use."""
+    found = [cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, d))).detectMarkers(gray)[1]
+             for d in FIDUCIAL_DICTIONARIES]
+    return max(0 if ids is None else len(ids) for ids in found)
+
+
+def test_fiducial_sheets(dataset):
+    """Fiducial sheets are real, decodable ChArUco boards and ArUco grids, and with scene.boards=1 they lie in
+    the rendered frames (the annotation test above runs on these same frames, so the sheets spoil no mask or
+    depth)."""
+    for seed in range(8):
+        sheet = random_fiducial_sheet(np.random.default_rng(seed))
+        assert _fiducial_markers(sheet) >= 8, seed
+    seen = [_fiducial_markers(cv2.imread(str(chunk / "rgb" / f"{im:06d}.jpg"), cv2.IMREAD_GRAYSCALE))
+            for chunk, im, *_ in frames(dataset)]
+    assert sum(seen) >= 1, seen  # 320x240 at 4 spp: few markers decode, but none would without the sheets
+    with pytest.raises(ConfigError, match="scene.boards is a probability"):
+        small_config("scene.boards=1.5")
 
 
 def test_dope_corner_order(dataset):

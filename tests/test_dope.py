@@ -199,15 +199,18 @@ def test_fine_tune_on_two_datasets(dataset, tmp_path):
     second = tmp_path / "second"
     shutil.copytree(dataset, second)
     cfg.init_model, cfg.lr = str(tmp_path / "base"), 1e-12  # steps that barely move the weights
+    cfg.crop, cfg.zoom, cfg.input_size = True, 1.5, (96, 96)  # and at another scale, on windows
     tuned = train([dataset, second], tmp_path / "tuned", cfg)
     assert tuned["train_frames"] == 2 * base["train_frames"]
+    focal = [json.loads((tmp_path / m / "config.json").read_text())["trained_focal_px"] for m in ("base", "tuned")]
+    assert focal == [pytest.approx(150), pytest.approx(300 * 1.5)]  # 0.5x whole frames; windows of 1.5x frames
     inputs = read_manifest(tmp_path / "tuned")["inputs"]
     assert {"dataset", "dataset_2", "init_model"} <= set(inputs)
     weights = [torch.load(tmp_path / m / "checkpoint.pt", weights_only=False)["model"] for m in ("base", "tuned")]
     learned = [k for k in weights[0] if "running" not in k and "num_batches" not in k]
     assert max(float((weights[0][k] - weights[1][k]).abs().max()) for k in learned) < 1e-6
 
-    cfg.stages = 2
+    cfg.stages, cfg.crop, cfg.zoom = 2, False, 1.0
     with pytest.raises(ConfigError, match="stages"):
         train(dataset, tmp_path / "x", cfg)
     cfg.stages, cfg.init_model = 1, ""

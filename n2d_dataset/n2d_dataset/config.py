@@ -69,6 +69,10 @@ class SceneConfig:
     """Objects are dropped over a square of this half size around the origin, metres."""
     walls: float = 0.5
     """Probability of walls behind the floor (a room corner) instead of an open horizon."""
+    boards: float = 0.3
+    """Probability that a frame has a printed fiducial sheet (a ChArUco board or an ArUco marker grid, as
+    labs calibrate and capture on) lying flat under one of the targets: without it the network mistakes
+    a board's black squares and markers for the object's corners."""
     in_hand: float = 0.0
     """Probability that a frame shows one target held by a gripper proxy in the air (the paper validates
     in-hand) instead of resting on the floor."""
@@ -88,7 +92,7 @@ class SceneConfig:
                 raise ValueError(f"scene.{name} must be a range [lo, hi] with 0 <= lo <= hi")
         if self.instances_per_model[1] < 1:
             raise ValueError("scene.instances_per_model must allow at least one copy")
-        for name in ("walls", "in_hand"):
+        for name in ("walls", "boards", "in_hand"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"scene.{name} is a probability, in [0, 1]")
 

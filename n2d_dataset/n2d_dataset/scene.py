@@ -1,5 +1,5 @@
 """One random scene per frame, composed from the bpy layer: floor and walls, the target models, distractors,
-lights and sky, dropped by physics or held in a gripper proxy.
+a printed fiducial sheet, lights and sky, dropped by physics or held in a gripper proxy.
 
 World frame: Z up, floor at z = 0. Target instances get Object Index 1..n (their label in the index
 pass); everything else keeps 0. Runs inside a render worker process only (imports bpy).
@@ -13,12 +13,13 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from n2d_common.frames import make_T
+from n2d_common.frames import make_T, rot_z
 from n2d_dataset.bl import lighting, materials, objects, physics
 from n2d_dataset.bl.camera import make_camera, world_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 from n2d_dataset.poses import random_rotation
+from n2d_dataset.textures import random_fiducial_sheet
 
 FLOOR_HALF_M = 4.0
 """Half size of the floor square, metres."""
@@ -75,6 +76,9 @@ class SceneBuilder:
         if held is not None:
             self._hold(rng, held)
         focus = instances[rng.integers(len(instances))] if held is None else held
+        # No draw at all when boards is 0, so configs without sheets render the frames they always did.
+        if sc.boards and rng.random() < sc.boards:
+            self._sheet(rng, instances[rng.integers(len(instances))])
         lighting.random_lights(rng, int(rng.integers(sc.lights[0], sc.lights[1] + 1)), sc.light_power_w,
                                focus.T_world_obj()[:3, 3])
         lighting.gradient_world(rng, float(rng.uniform(*sc.world_strength)))
@@ -101,6 +105,24 @@ class SceneBuilder:
         obj = objects.primitive(f"distractor{i}", str(rng.choice(objects.PRIMITIVES)), size)
         materials.assign(obj, materials.random_material(rng, f"distractor{i}"))
         return obj
+
+    def _sheet(self, rng: np.random.Generator, under: Instance) -> None:
+        """A fiducial sheet flat on the floor, 0.15-0.45 m across, roughly centred under `under` (held
+        targets too: the sheet is on the table below them), turned at random about Z."""
+        img = random_fiducial_sheet(rng)
+        h, w = img.shape
+        sx = rng.uniform(0.15, 0.45)
+        sy = sx * h / w
+        verts = [(-sx / 2, -sy / 2, 0), (sx / 2, -sy / 2, 0), (sx / 2, sy / 2, 0), (-sx / 2, sy / 2, 0)]
+        sheet = objects.mesh_object("fiducial_sheet", verts, [(0, 1, 2, 3)], uvs=[(0, 0), (1, 0), (1, 1), (0, 1)])
+        centre = under.T_world_obj()[:2, 3] + rng.uniform(-0.3, 0.3, 2) * (sx, sy)
+        # 0.3 mm above the floor: above it for the depth test, below anything resting on it by less than a pixel.
+        T = rot_z(rng.uniform(0, 2 * np.pi))
+        T[:3, 3] = (*centre, 0.0003)
+        sheet.matrix_world = Matrix(T.tolist())
+        paper = materials.image("fiducial_sheet", img)
+        materials.assign(sheet, materials.textured("fiducial_sheet", paper, roughness=rng.uniform(0.3, 0.9),
+                                                   interpolation="Closest"))
 
     def _scatter(self, rng: np.random.Generator, objs: list[bpy.types.Object]) -> None:
         """Random orientations over the spread square, stacked in height so nothing starts interpenetrating."""

@@ -6,6 +6,8 @@ import bpy
 import cv2
 import numpy as np
 
+from n2d_dataset.textures import random_image
+
 
 def srgb_to_linear(c) -> tuple[float, ...]:
     """Linear values of sRGB-encoded colour components in [0, 1]."""
@@ -91,24 +93,6 @@ def random_color(rng: np.random.Generator) -> tuple[float, ...]:
     """A random linear colour, saturated or grey alike."""
     hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0, 255), rng.uniform(20, 255)]]])
     return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255)
-
-
-def random_image(rng: np.random.Generator, size: int = 256) -> np.ndarray:
-    """A random picture made on the fly: coloured noise blobs with shapes and strokes over them."""
-    low = rng.integers(0, 256, (rng.integers(2, 9), rng.integers(2, 9), 3), dtype=np.uint8)
-    img = cv2.resize(low, (size, size), interpolation=cv2.INTER_CUBIC)
-    for _ in range(rng.integers(3, 15)):
-        color = tuple(int(c) for c in rng.integers(0, 256, 3))
-        x, y = (int(v) for v in rng.integers(0, size, 2))
-        r = int(rng.integers(4, size // 4))
-        if rng.random() < 0.4:
-            cv2.circle(img, (x, y), r, color, -1, cv2.LINE_AA)
-        elif rng.random() < 0.6:
-            cv2.rectangle(img, (x, y), (x + r, y + r // 2), color, -1)
-        else:
-            x2, y2 = (int(v) for v in rng.integers(0, size, 2))
-            cv2.line(img, (x, y), (x2, y2), color, int(rng.integers(1, 6)), cv2.LINE_AA)
-    return img
 
 
 def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
