@@ -31,7 +31,10 @@ from n2d_sim.objects import sample_object_dir
 from n2d_sim.session import render_session, small_world
 
 SMALL = ["frames=4", "camera.width=320", "camera.height=240", "camera.focal_px=300", "render.samples=2",
-         "camera.distance_m=[0.3,0.6]", "scene.instances_per_model=[2,2]", "scene.distractors=[1,2]"]
+         "camera.distance_m=[0.3,0.6]", "scene.instances_per_model=[2,2]", "scene.distractors=[1,2]",
+         "scene.boards=0"]
+# No fiducial sheets: they change these seeds' scenes, and in the ones they give two boxes' like corners come
+# within two map cells, where DOPE's maps merge them into one peak (a limit of the method, not of the decoding).
 
 
 @pytest.fixture(scope="module")

@@ -92,6 +92,12 @@ def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: in
             yield b, tuple(torch.from_numpy(x) for x in batch)
 
 
+def memory_format(device: torch.device) -> torch.memory_format:
+    """NHWC on the CPU: oneDNN runs the lite network's training step twice as fast in it (measured on 2 cores, 16
+    windows of 240 x 240: 1.3-1.4 s NCHW, 0.67-0.74 s NHWC; bf16 autocast gained nothing); CUDA keeps the default."""
+    return torch.channels_last if device.type == "cpu" else torch.contiguous_format
+
+
 def _identity(cfg: TrainConfig, object_name: str, datasets: list[Path]) -> dict:
     config = {k: v for k, v in to_dict(cfg).items() if k not in _NOT_IDENTITY}
     names = [str(d.absolute()) for d in datasets]
@@ -133,8 +139,9 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         ckpt_path = stage.path / "checkpoint.pt"
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
+        fmt = memory_format(device)
         net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None and initial is None,
-                      frozen_blocks=cfg.frozen_blocks).to(device)
+                      frozen_blocks=cfg.frozen_blocks).to(device, memory_format=fmt)
         if state is None and initial is not None:
             net.load_state_dict(initial)
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
@@ -168,7 +175,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
                 for group in opt.param_groups:
                     group["lr"] = learning_rate(cfg, done(pos))
-                loss = dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device))
+                loss = dope_loss(net(images.to(device, memory_format=fmt)), beliefs.to(device), affinities.to(device))
                 if not torch.isfinite(loss):
                     raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
                                    "lower --set lr=..., or re-run with --overwrite")
@@ -194,7 +201,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
                     last_save = time.monotonic()
             pos["losses"].append(float(np.mean(epoch_losses)) if epoch_losses else None)
             save()
-        net.eval()
+        net.eval().to(memory_format=torch.contiguous_format)
         summary = _finish(stage.path, net, info, name, train_frames, held_frames, cfg, pos, total, device, progress)
         summary["parameters"] = parameter_count(net)
         atomic_write_json(stage.path / "training.json", summary)
