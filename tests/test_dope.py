@@ -107,7 +107,7 @@ def test_augmented_targets_follow_the_image(dataset, crop):
     annotation says."""
     from n2d_dope.data import affine, instances
 
-    cfg = TrainConfig(zoom=1.5) if crop else TrainConfig(crop=False, input_size=(320, 240))
+    cfg = TrainConfig(zoom=1.5) if crop else TrainConfig(crop=False, zoom=1.0, input_size=(320, 240))
     (w, h), info = cfg.input_size, open_dataset(dataset)
     samples = DopeSamples(info.frames, "box", cfg, augment=True)
     image, beliefs, affinities = samples[0]

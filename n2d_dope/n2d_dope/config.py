@@ -56,17 +56,19 @@ class TrainConfig:
     frozen_blocks: int = 3
     """lite: keep the stem and this many of its first ImageNet blocks fixed (their low-level features transfer
     to real images as they are, and training runs ~1.4x faster on a CPU); 0 trains the whole trunk."""
-    input_size: tuple[int, int] = (160, 160)
+    input_size: tuple[int, int] = (240, 240)
     """Network input width, height in pixels during training (multiples of 16)."""
     crop: bool = True
     """Train on input_size windows cut from the frames at their own scale, each centred near one instance of the
     object (then zoomed, rotated and shifted by the augmentation), rather than on whole frames fitted to
     input_size. The network is fully convolutional, so it still runs on whole images; a 160 x 160 window costs a
     third of a 320 x 240 frame, and the object keeps the size in pixels it has at inference."""
-    zoom: float = 1.0
+    zoom: float = 1.5
     """Crop training: windows are cut from the frames enlarged by this factor, so the model works at zoom times the
     dataset's focal length (`trained_focal_px`; detection resizes camera images to match). Objects then cover
-    zoom^2 more map cells, which places corners more precisely, and the network costs zoom^2 more per image."""
+    zoom^2 more map cells, which places corners more precisely, and the network costs zoom^2 more per image.
+    Measured with an hour of CPU training from ImageNet on the same frames: zoom 1.5 on 240 x 240 windows 79.2 %
+    ADD-S on held-out frames, zoom 1 on 160 x 160 windows 66.9 % (before NHWC training doubled the steps)."""
     init_model: str = ""
     """A DOPE model directory (from n2d train) whose weights this training starts from instead of ImageNet's:
     fine-tune a model on more or newer data (same backbone and stages). Empty: start from ImageNet."""
@@ -118,7 +120,8 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.zoom <= 0 or (self.zoom != 1.0 and not self.crop):
-            raise ValueError(f"zoom must be positive, and other than 1 only with crop training, got {self.zoom}")
+            raise ValueError(f"zoom must be positive, and 1 without crop training (set zoom=1 with crop=false), "
+                             f"got {self.zoom}")
         if self.lr <= 0 or self.sigma_cells <= 0 or self.affinity_radius_cells <= 0:
             raise ValueError("lr, sigma_cells and affinity_radius_cells must be positive")
         if not 0.0 <= self.holdout < 0.5:
@@ -132,10 +135,10 @@ class TrainConfig:
             return cls()
         if name == "vgg":
             return cls(backbone="vgg", stages=6, lr=1e-4, batch_size=64, epochs=100, input_size=(400, 400),
-                       frozen_blocks=0)
+                       zoom=1.0, frozen_blocks=0)
         if name == "tiny":
-            return cls(stages=1, epochs=2, batch_size=4, input_size=(160, 128), crop=False, calibration_frames=4,
-                       checkpoint_every_s=1.0)
+            return cls(stages=1, epochs=2, batch_size=4, input_size=(160, 128), crop=False, zoom=1.0,
+                       calibration_frames=4, checkpoint_every_s=1.0)
         raise ValueError(f"unknown preset {name!r}: use lite, vgg or tiny")
 
 
