@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from n2d_common.errors import DeviceError
 from n2d_common.frames import R_from_quat, make_T
-from n2d_common.ros import SENSOR_QOS, image_rgb, stamp_seconds
+from n2d_common.ros import SENSOR_QOS, LiveSubscription, image_rgb, stamp_seconds
 
 
 @dataclass
@@ -47,13 +47,11 @@ class SimCameraClient:
         self._keep = keep
         self.K: np.ndarray | None = None
         ns = namespace.rstrip("/")
-        node.create_subscription(Image, f"{ns}/camera/image_raw", lambda m: self._add(m.header.stamp, "rgb", m),
-                                 SENSOR_QOS)
-        node.create_subscription(Image, f"{ns}/sim/object_mask", lambda m: self._add(m.header.stamp, "mask", m),
-                                 SENSOR_QOS)
+        LiveSubscription(node, Image, f"{ns}/camera/image_raw", lambda m: self._add(m.header.stamp, "rgb", m))
+        LiveSubscription(node, Image, f"{ns}/sim/object_mask", lambda m: self._add(m.header.stamp, "mask", m))
         node.create_subscription(PoseStamped, f"{ns}/sim/object_pose",
                                  lambda m: self._add(m.header.stamp, "pose", m), SENSOR_QOS)
-        node.create_subscription(CameraInfo, f"{ns}/camera/camera_info", self._on_info, SENSOR_QOS)
+        LiveSubscription(node, CameraInfo, f"{ns}/camera/camera_info", self._on_info)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.K = np.array(msg.k, dtype=float).reshape(3, 3)

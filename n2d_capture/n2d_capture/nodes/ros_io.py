@@ -18,7 +18,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from n2d_capture.sweep import Frame
 from n2d_common.errors import Cancelled, DeviceError, N2DError
-from n2d_common.ros import SENSOR_QOS, SafeActionClient, call_action, image_rgb, stamp_seconds
+from n2d_common.ros import LiveSubscription, SafeActionClient, call_action, image_rgb, stamp_seconds
 from n2d_interfaces.action import Rotate
 
 
@@ -31,14 +31,13 @@ class RosFrameSource:
         self._cond = threading.Condition()
         self._use_header = use_header_stamp
         self.topic = node.resolve_topic_name(image_topic)
-        self._node = node
-        self._subs = [node.create_subscription(Image, image_topic, self._on_image, SENSOR_QOS),
-                      node.create_subscription(CameraInfo, camera_info_topic, self._on_info, SENSOR_QOS)]
+        self._subs = [LiveSubscription(node, Image, image_topic, self._on_image),
+                      LiveSubscription(node, CameraInfo, camera_info_topic, self._on_info)]
 
     def close(self) -> None:
         """Unsubscribe (a node that only needs frames during a sweep stops receiving them)."""
         for sub in self._subs:
-            self._node.destroy_subscription(sub)
+            sub.destroy()
         self._subs = []
 
     def _on_image(self, msg: Image) -> None:

@@ -1,7 +1,8 @@
 """dope_node: live 6D poses of the trained objects in a camera stream (DOPE models on ONNX Runtime).
 
 Subscribes to any camera driver's `image_topic` + `camera_info_topic` (undistorted images) with live-video QoS:
-depth 1, best effort, so a detector slower than the camera drops stale frames instead of queueing them. The
+depth 1 (reliable, best effort for best-effort publishers), so a detector slower than the camera drops stale
+frames instead of queueing them. The
 subscription callbacks only keep the newest image and CameraInfo; one worker thread runs every model on the
 newest image (at most `max_rate_hz` times a second) and publishes, under the node's namespace:
 `dope/pose_<object>` (PoseStamped, the best detection of each object, only when found), `dope/detections`
@@ -32,7 +33,7 @@ from n2d_common.frames import project, transform_points
 from n2d_common.images import draw_axes, draw_cuboid
 from n2d_common.ros import (
     PUBLISH_QOS,
-    SENSOR_QOS,
+    LiveSubscription,
     declare_config,
     image_msg,
     image_rgb,
@@ -160,8 +161,8 @@ class DopeNode(Node):
         self._running = True
         self._received = 0
         self._latencies_ms: list[float] = []
-        self.create_subscription(CameraInfo, self.cfg.camera_info_topic, self.on_camera_info, SENSOR_QOS)
-        image_sub = self.create_subscription(Image, self.cfg.image_topic, self.on_image, SENSOR_QOS)
+        LiveSubscription(self, CameraInfo, self.cfg.camera_info_topic, self.on_camera_info)
+        image_sub = LiveSubscription(self, Image, self.cfg.image_topic, self.on_image)
         self._worker = threading.Thread(target=self._work, daemon=True)
         self._worker.start()
         if self.cfg.log_period_s > 0:
@@ -245,7 +246,7 @@ class DopeNode(Node):
 
 
 def main(args=None) -> None:
-    run_node(DopeNode, args)
+    run_node(DopeNode, args, threads=1)
 
 
 if __name__ == "__main__":
