@@ -47,11 +47,13 @@ class SimCameraClient:
         self._keep = keep
         self.K: np.ndarray | None = None
         ns = namespace.rstrip("/")
-        LiveSubscription(node, Image, f"{ns}/camera/image_raw", lambda m: self._add(m.header.stamp, "rgb", m))
-        LiveSubscription(node, Image, f"{ns}/sim/object_mask", lambda m: self._add(m.header.stamp, "mask", m))
+        self._subs = [
+            LiveSubscription(node, Image, f"{ns}/camera/image_raw", lambda m: self._add(m.header.stamp, "rgb", m)),
+            LiveSubscription(node, Image, f"{ns}/sim/object_mask", lambda m: self._add(m.header.stamp, "mask", m)),
+            LiveSubscription(node, CameraInfo, f"{ns}/camera/camera_info", self._on_info),
+        ]
         node.create_subscription(PoseStamped, f"{ns}/sim/object_pose",
                                  lambda m: self._add(m.header.stamp, "pose", m), SENSOR_QOS)
-        LiveSubscription(node, CameraInfo, f"{ns}/camera/camera_info", self._on_info)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.K = np.array(msg.k, dtype=float).reshape(3, 3)

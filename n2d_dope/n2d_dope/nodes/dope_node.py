@@ -1,15 +1,14 @@
 """dope_node: live 6D poses of the trained objects in a camera stream (DOPE models on ONNX Runtime).
 
 Subscribes to any camera driver's `image_topic` + `camera_info_topic` (undistorted images) with live-video QoS:
-depth 1 (reliable, best effort for best-effort publishers), so a detector slower than the camera drops stale
-frames instead of queueing them. The
-subscription callbacks only keep the newest image and CameraInfo; one worker thread runs every model on the
-newest image (at most `max_rate_hz` times a second) and publishes, under the node's namespace:
-`dope/pose_<object>` (PoseStamped, the best detection of each object, only when found), `dope/detections`
-(Detection3DArray, one per processed frame, empty when nothing was found), `dope/overlay` (rgb8, the fitted
-cuboids and object axes drawn) and `dope/latency_ms` (Float64, image stamp to published detections). Poses are
-in the camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when
-set. Every `log_period_s` it logs frames received, frames processed and the latency.
+depth 1 (reliable, best effort for best-effort publishers), so a detector slower than the camera drops stale frames
+instead of queueing them. The subscription callbacks only keep the newest image and CameraInfo; one worker thread
+runs every model on the newest image (at most `max_rate_hz` times a second) and publishes, under the node's
+namespace: `dope/pose_<object>` (PoseStamped, the best detection of each object, only when found), `dope/detections`
+(Detection3DArray, one per processed frame, empty when nothing was found), `dope/overlay` (rgb8, the fitted cuboids
+and object axes drawn) and `dope/latency_ms` (Float64, image stamp to published detections). Poses are in the
+camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when set. Every
+`log_period_s` it logs frames received, frames processed and the latency.
 """
 
 from __future__ import annotations
@@ -161,15 +160,15 @@ class DopeNode(Node):
         self._running = True
         self._received = 0
         self._latencies_ms: list[float] = []
-        LiveSubscription(self, CameraInfo, self.cfg.camera_info_topic, self.on_camera_info)
-        image_sub = LiveSubscription(self, Image, self.cfg.image_topic, self.on_image)
+        self.camera_info_sub = LiveSubscription(self, CameraInfo, self.cfg.camera_info_topic, self.on_camera_info)
+        self.image_sub = LiveSubscription(self, Image, self.cfg.image_topic, self.on_image)
         self._worker = threading.Thread(target=self._work, daemon=True)
         self._worker.start()
         if self.cfg.log_period_s > 0:
             self._log_since = time.monotonic()
             self.create_timer(self.cfg.log_period_s, self.on_log_timer)
         self.get_logger().info(f"dope ready: {', '.join(self.cuboids)} ({self.cfg.precision}) on "
-                               f"{image_sub.topic_name}")
+                               f"{self.image_sub.topic_name}")
 
     def on_image(self, msg: Image) -> None:
         with self._new:
