@@ -147,8 +147,8 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
     reader = pycolmap.ImageReaderOptions(camera_model="FULL_OPENCV", camera_params=",".join(map(str, params)),
                                          mask_path=str(work / "masks"))
     # SIFT and brute-force SIFT matching named explicitly: COLMAP's learned extractors and matchers (ALIKED,
-    # LightGlue) fetch their weights from the internet on first use, and a vocabulary-tree pairing would fetch
-    # its tree; the imported pair list below needs neither
+    # LightGlue) and vocabulary-tree pairing need weight / tree files that n2d does not ship; SIFT and the
+    # imported pair list below need no files at all
     extraction = pycolmap.FeatureExtractionOptions(num_threads=cfg.threads or -1,
                                                    type=pycolmap.FeatureExtractorType.SIFT)
     extraction.sift.max_num_features = cfg.max_features
