@@ -1,6 +1,6 @@
 """Benchmark of the DOPE stage: inference speed of both networks, the live node, and pose accuracy.
 
-    python benchmarks/dope.py --model DOPE_MODEL --test TEST_DATASET [--views 24] [--node-seconds 20]
+    python benchmarks/dope.py --model DOPE_MODEL --test TEST_DATASET [TEST_DATASET ...] [--views 24] [--node-seconds 20]
     python benchmarks/dope.py --train TRAIN_DATASET [TRAIN_DATASET ...] --minutes 60 --test TEST_DATASET
 
 One table:
@@ -188,20 +188,27 @@ def node_rows(model: Path, test: Path, seconds: float) -> list[tuple[str, ...]]:
     return rows
 
 
-def accuracy_rows(model: Path, test: Path, tmp: Path, views: int) -> list[tuple[str, ...]]:
-    """ADD / ADD-S of the light model on the synthetic test set (fp32, INT8) and on a captured turntable sweep."""
+def accuracy_rows(model: Path, tests: list[Path], tmp: Path, views: int) -> list[tuple[str, ...]]:
+    """ADD / ADD-S of the light model on each synthetic test set and all of them together (fp32, INT8), and on a
+    captured turntable sweep."""
     rows = []
     config = json.loads((model / "config.json").read_text())
     for precision in config["models"]:
-        r = evaluate(model, test, precision=precision)
-        met = "met" if r["adds_accuracy_10pct"] >= ACCURACY_GOAL else "NOT met"
-        rows.append((f"synthetic test set {precision}: ADD-S / ADD accuracy",
-                     f"{100 * r['adds_accuracy_10pct']:.1f} % / {100 * r['add_accuracy_10pct']:.1f} %",
-                     f"ADD-S >= {100 * ACCURACY_GOAL:.0f} %", met))
-        rows.append(("  AUC to 10 cm ADD-S / ADD; detected; median ADD-S",
-                     f"{100 * r['adds_auc_10cm']:.1f} / {100 * r['add_auc_10cm']:.1f}",
-                     f"{r['detected']}/{r['instances']} in {r['frames']} frames",
-                     f"{r['adds_median_mm']:.1f} mm" if r["adds_median_mm"] is not None else "-"))
+        results = []
+        for i, test in enumerate(tests):
+            r = evaluate(model, test, name="synthetic" if i == 0 else f"synthetic_{test.name}", precision=precision)
+            results.append(r)
+            rows += _accuracy(f"synthetic test set {test.name} {precision}", r,
+                              f"{r['detected']}/{r['instances']} in {r['frames']} frames",
+                              f"{r['adds_median_mm']:.1f} mm" if r["adds_median_mm"] is not None else "-")
+        if len(results) > 1:
+            # accuracy and AUC are means over instances, so the pooled value is the instance-weighted mean
+            count = sum(r["instances"] for r in results)
+            pooled = {k: sum(r[k] * r["instances"] for r in results) / count for k in
+                      ("adds_accuracy_10pct", "add_accuracy_10pct", "adds_auc_10cm", "add_auc_10cm")}
+            rows += _accuracy(f"all {len(results)} synthetic test sets {precision}", pooled,
+                              f"{sum(r['detected'] for r in results)}/{count} in "
+                              f"{sum(r['frames'] for r in results)} frames", "")
     if views:
         sys.path.insert(0, str(Path(__file__).parent))
         from capture import run as capture_run  # the capture benchmark's recording: the same code as n2d capture
@@ -223,13 +230,23 @@ def accuracy_rows(model: Path, test: Path, tmp: Path, views: int) -> list[tuple[
     return rows
 
 
+def _accuracy(label: str, r: dict, detected: str, median: str) -> list[tuple[str, ...]]:
+    met = "met" if r["adds_accuracy_10pct"] >= ACCURACY_GOAL else "NOT met"
+    return [(f"{label}: ADD-S / ADD accuracy",
+             f"{100 * r['adds_accuracy_10pct']:.1f} % / {100 * r['add_accuracy_10pct']:.1f} %",
+             f"ADD-S >= {100 * ACCURACY_GOAL:.0f} %", met),
+            ("  AUC to 10 cm ADD-S / ADD; detected; median ADD-S",
+             f"{100 * r['adds_auc_10cm']:.1f} / {100 * r['add_auc_10cm']:.1f}", detected, median)]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", type=Path, help="a trained light DOPE model directory")
     parser.add_argument("--train", type=Path, nargs="+", help="train the light model on this dataset (or these, "
                         "rendered with the same camera) first")
     parser.add_argument("--minutes", type=float, default=60.0, help="training time with --train")
-    parser.add_argument("--test", type=Path, required=True, help="held-out test dataset (another seed)")
+    parser.add_argument("--test", type=Path, nargs="+", required=True,
+                        help="held-out test dataset(s) (other seeds); speed and the node use the first")
     parser.add_argument("--views", type=int, default=24, help="turntable sweep views (0: skip the sweep)")
     parser.add_argument("--runs", type=int, default=20, help="timed runs per network")
     parser.add_argument("--node-seconds", type=float, default=20.0, help="seconds of each live-stream run")
@@ -254,9 +271,9 @@ def main() -> None:
                      f"{summary['steps']} steps on {summary['train_frames']} frames"
                      + (f", fine-tuned from {Path(init).name}" if init else ""),
                      f"held-out loss {summary['held_out_loss']:.5f}" if summary["held_out_loss"] else ""))
-        rows += speed_rows(model, args.test, tmp, args.runs)
+        rows += speed_rows(model, args.test[0], tmp, args.runs)
         if args.node_seconds > 0:
-            rows += node_rows(model, args.test, args.node_seconds)
+            rows += node_rows(model, args.test[0], args.node_seconds)
         rows += accuracy_rows(model, args.test, tmp, args.views)
     print_table(f"dope: {machine}", rows, ("metric", "value", "goal / note", ""))
 
