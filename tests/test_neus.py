@@ -12,6 +12,7 @@ from n2d_common.errors import Cancelled, N2DError
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.neus.encoding import HashGrid
+from n2d_reconstruct.neus.field import frontal_views
 from n2d_sim.session import render_session, small_world
 
 BOX_HALF_M = np.array([0.045, 0.03, 0.07])
@@ -135,8 +136,25 @@ def test_save_load_and_albedo(trained, tmp_path):
     normals = np.tile([0.0, 0.0, 1.0], (100, 1))
     albedo = loaded.albedo(points, normals)
     assert albedo.shape == (100, 3) and (albedo >= 0).all() and (albedo <= 1).all()
+    # seen from training cameras: one camera straight out along each normal gives the along-the-normal colour
+    eyes = np.array([[0.0, 0.0, 1e4], [5.0, 0.0, 0.0]])
+    np.testing.assert_allclose(loaded.albedo(points, normals, eyes, k=1), albedo, atol=1e-4)
+    blended = loaded.albedo(points, normals, eyes + [[0.3, 0.0, 0.0], [0.0, 0.0, 0.0]], k=2)
+    assert blended.shape == (100, 3) and (blended >= 0).all() and (blended <= 1).all()
     checkpoint = NeusField.load(trained[2] / "neus.pt")  # a training checkpoint loads as a field too
     np.testing.assert_allclose(checkpoint.sdf(points), field.sdf(points), atol=1e-6)
+
+
+def testfrontal_views_pick_the_most_frontal_cameras_and_fall_back_to_the_normal():
+    points = np.zeros((2, 3))
+    normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    eyes = np.array([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    dirs, weights = frontal_views(points, normals, eyes, k=2, sharpness=6.0, min_cos=0.15)
+    np.testing.assert_allclose(dirs[0], [[-1.0, 0.0, 0.0], [-np.sqrt(0.5), -np.sqrt(0.5), 0.0]], atol=1e-12)
+    np.testing.assert_allclose(weights[0], [1.0, np.sqrt(0.5) ** 6], atol=1e-12)
+    # no camera sees the underside: it is seen along its normal alone
+    np.testing.assert_allclose(dirs[1, 0], [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(weights[1], [1.0, 0.0])
 
 
 def test_cancel_saves_and_a_rerun_resumes_from_that_step(session, tmp_path):

@@ -7,6 +7,8 @@ frames[].file_path, frames[].mask_path, frames[].transform_matrix); cx, cy follo
 convention (OpenCV + 0.5). Each transform_matrix is camera-to-world, i.e.
 T_turntable_cam in the metric, gravity-aligned, plate-attached turntable frame, with the camera
 axes in nerfstudio's OpenGL convention (x right, y up, z backwards); `T_cam_opencv` converts.
+A simulated session may also hold `truth/images/NNNN.png`, the noise-free render of each view: the
+reconstruction report scores held-out views against it too (no real camera has one).
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ from n2d_common.contracts import open_stage
 
 PIXEL_EDGE = 0.5
 """nerfstudio and COLMAP put pixel centres at +0.5, OpenCV at integers: cx_nerfstudio = cx_opencv + 0.5."""
+TRUTH_DIR = "truth"
+"""Optional session subdirectory: the noise-free image of each view under the image's own relative path."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiply a camera-to-world pose with OpenCV camera axes to get OpenGL camera axes (and back)."""
 
@@ -60,6 +64,8 @@ class SessionView:
     mask: Path | None
     T_turntable_cam: np.ndarray | None
     """4x4 camera pose (OpenCV camera axes) in the turntable frame, metres; None where the file has none."""
+    truth: Path | None = None
+    """The view's noise-free image (simulated sessions only), else None."""
 
 
 @dataclass
@@ -83,6 +89,11 @@ def read_session(directory: str | Path) -> Session:
     K = np.array([[t["fl_x"], 0.0, t["cx"] - PIXEL_EDGE], [0.0, t["fl_y"], t["cy"] - PIXEL_EDGE], [0.0, 0.0, 1.0]])
     dist = np.array([t.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
     views = [SessionView(directory / f["file_path"], directory / f["mask_path"] if "mask_path" in f else None,
-                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV if "transform_matrix" in f else None)
+                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV if "transform_matrix" in f else None,
+                         _existing(directory / TRUTH_DIR / f["file_path"]))
              for f in t["frames"]]
     return Session(directory, K, dist, int(t["w"]), int(t["h"]), views, manifest)
+
+
+def _existing(path: Path) -> Path | None:
+    return path if path.is_file() else None

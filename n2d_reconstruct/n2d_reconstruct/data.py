@@ -38,6 +38,8 @@ class Views:
     """N x 4 x 4 camera poses in the turntable frame (OpenCV camera axes), metres."""
     names: list[str]
     """Image file of each view, relative to the session directory."""
+    truth: np.ndarray | None = None
+    """N x H x W x 3 uint8 noise-free images of the same views (simulated sessions only), else None."""
 
     def __len__(self) -> int:
         return len(self.names)
@@ -54,7 +56,8 @@ class Views:
         """The views at `index` (a list of ints or a boolean array)."""
         index = np.asarray(index)
         return Views(self.rgb[index], self.masks[index], self.K, self.T_turntable_cam[index],
-                     [self.names[i] for i in np.arange(len(self))[index]])
+                     [self.names[i] for i in np.arange(len(self))[index]],
+                     None if self.truth is None else self.truth[index])
 
 
 @dataclass
@@ -100,8 +103,11 @@ def load_session(directory: str | Path, *, holdout_every: int = 8, min_views: in
         masks.append(mask)
         poses.append(T)
     K, rgb, masks = _undistort(session.K, session.dist, np.stack(rgb), np.stack(masks))
+    truth = None
+    if all(v.truth is not None for v in session.views):
+        truth = _undistort(session.K, session.dist, np.stack([read_png(v.truth) for v in session.views]), masks)[1]
     names = [str(v.image.relative_to(directory)) for v in session.views]
-    views = Views(rgb, masks, K, np.stack(poses), names)
+    views = Views(rgb, masks, K, np.stack(poses), names, truth)
     heldout = np.zeros(len(views), dtype=bool)
     if holdout_every > 0:
         heldout[holdout_every // 2::holdout_every] = True

@@ -134,8 +134,10 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
 def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: ProgressFn):
     progress(Progress(0.0, "texture", message="unwrapping (xatlas)"))
     tm = unwrap(mesh, cfg)
-    if neus is not None:
-        tm.albedo = bake_from_function(tm, neus.albedo, cfg.size_px)
+    if neus is not None:  # the colour field seen from the most frontal training cameras, weighted like photos
+        eyes = views.T_turntable_cam[:, :3, 3]
+        tm.albedo = bake_from_function(tm, lambda p, n: neus.albedo(p, n, eyes, sharpness=cfg.sharpness,
+                                                                     min_cos=cfg.min_cos), cfg.size_px)
         return tm
     tm.albedo = bake_from_views(tm, views, cfg, progress=lambda p: progress(Progress(0.5 + 0.5 * p.fraction, "texture",
                                                                                      message=p.message)))

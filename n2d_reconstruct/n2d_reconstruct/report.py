@@ -1,9 +1,10 @@
 """The model's quality report: held-out image metrics, geometry against a ground truth, and preview.png.
 
 Image metrics compare each held-out photo with a render from the same camera, over the pixels of
-the photo's object mask (the background is not modelled): the textured mesh (`mesh_*`) and, when
-the method has one, the radiance field (`field_*`). PSNR in dB, SSIM (Gaussian, sigma 1.5), FLIP
-(lower is better). Geometry: Chamfer distance (mean of both directions) and F-score at
+the photo's object mask, both black outside it (the background is not modelled): the textured mesh
+(`mesh_*`) and, when the method has one, the radiance field (`field_*`). PSNR in dB, SSIM (Gaussian,
+sigma 1.5), FLIP (lower is better); simulated sessions are also scored against their noise-free
+images (`clean_*`). Geometry: Chamfer distance (mean of both directions) and F-score at
 `fscore_threshold_m`, with the ground-truth mesh placed in the turntable frame.
 """
 
@@ -38,7 +39,12 @@ def ground_truth_mesh(model_dir: Path) -> trimesh.Trimesh:
 
 def image_metrics(views: Views, tm: TexturedMesh, field: FieldRender | None = None) -> tuple[dict, list]:
     """Mean held-out metrics of the textured mesh (and field) in the turntable frame, and one row of preview
-    images (photo, mesh, field, shaded geometry) per view."""
+    images (photo, mesh, field, shaded geometry) per view.
+
+    Keys `{mesh,field}_{psnr_db,ssim,flip}` score the renders against the photos. When the views have
+    noise-free images (a simulated session), `clean_{mesh,field}_*` score them against those, and
+    `clean_photo_*` scores the photo itself: what a perfect model would get against the photos.
+    """
     scores: dict[str, list[float]] = {}
     rows = []
     for i in range(len(views)):
@@ -50,13 +56,25 @@ def image_metrics(views: Views, tm: TexturedMesh, field: FieldRender | None = No
         if field is not None:
             images["field"] = np.clip(np.rint(255 * field(views.K, views.T_turntable_cam[i], views.width,
                                                            views.height, mask)), 0, 255).astype(np.uint8)
-        for name, image in images.items():
-            scores.setdefault(f"{name}_psnr_db", []).append(psnr(photo, image, mask))
-            scores.setdefault(f"{name}_ssim", []).append(ssim(photo, image, mask))
-            scores.setdefault(f"{name}_flip", []).append(flip(photo, image, mask))
+        pairs = [(name, photo, image) for name, image in images.items()]
+        if views.truth is not None:
+            clean = views.truth[i]
+            pairs += [(f"clean_{name}", clean, image) for name, image in images.items()]
+            pairs.append(("clean_photo", clean, photo))
+        for name, reference, image in pairs:
+            for metric, value in _scores(reference, image, mask).items():
+                scores.setdefault(f"{name}_{metric}", []).append(value)
         rows.append([photo, *images.values(), shaded(tm, views.K, T_cam, views.width, views.height)])
     means = {k: round(float(np.mean(v)), 4) for k, v in scores.items()}
     return means | {"heldout_views": len(views)}, rows
+
+
+def _scores(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """PSNR, SSIM and FLIP over the object mask, both images black outside it (the background is not
+    modelled, so SSIM windows at the outline compare the object against the same black)."""
+    reference, image = reference * mask[..., None], image * mask[..., None]
+    return {"psnr_db": psnr(reference, image, mask), "ssim": ssim(reference, image, mask),
+            "flip": flip(reference, image, mask)}
 
 
 def geometry_metrics(mesh: trimesh.Trimesh, truth: trimesh.Trimesh, threshold_m: float) -> dict:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from n2d_capture.session import transforms_json
+from n2d_capture.session import TRUTH_DIR, transforms_json
 from n2d_common.contracts import atomic_write_json, stage_output
 from n2d_common.frames import inv_T, rot_z
 from n2d_common.images import write_png
@@ -54,6 +54,8 @@ def render_session(out: str | Path, world: SimWorldConfig, views: int, *, noise:
                 frame = camera.render(float(angle))
                 image, mask = f"images/{i:04d}.png", f"masks/{i:04d}.png"
                 write_png(writer.path / image, camera.noisy(frame.rgb, rng) if noise else frame.rgb)
+                if noise:
+                    write_png(writer.path / TRUTH_DIR / image, frame.rgb)
                 write_png(writer.path / mask, frame.mask.astype(np.uint8) * 255)
                 frames.append((image, mask, inv_T(frame.T_cam_turntable @ rot_z(float(angle)))))
                 progress(Progress((i + 1) / views, "rendering", message=f"view {i + 1}/{views}"))

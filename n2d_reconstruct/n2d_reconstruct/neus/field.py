@@ -172,7 +172,10 @@ class NeusField:
         """Rays per rendering call."""
 
     def _net_points(self, points: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(self.norm.to_net(points), dtype=torch.float32, device=self.device)
+        return self._tensor(self.norm.to_net(points))
+
+    def _tensor(self, array: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(array, dtype=torch.float32, device=self.device)
 
     @torch.no_grad()
     def sdf(self, points: np.ndarray) -> np.ndarray:
@@ -185,16 +188,33 @@ class NeusField:
         return np.maximum(out, _box_sdf(points, self.aabb))
 
     @torch.no_grad()
-    def albedo(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """Colour (N x 3 sRGB in [0, 1]) of surface points seen from outside along their normals."""
+    def albedo(self, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None = None, *, k: int = 4,
+               sharpness: float = 6.0, min_cos: float = 0.15) -> np.ndarray:
+        """Colour (N x 3 sRGB in [0, 1]) of surface points with outward `normals`.
+
+        Without `eyes` each point is seen along its normal. With `eyes` (M x 3 camera centres, turntable frame,
+        e.g. the training cameras) it is the colour seen from the `k` most frontal of them, blended with
+        weights cos^sharpness (cameras under `min_cos` left out; none left: along the normal), so the colour
+        network is only asked about directions it was trained on (from a ring of views, a side's normal
+        direction is not one of them).
+        """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         out = np.empty((len(points), 3), dtype=np.float32)
-        for s in range(0, len(points), self.chunk_points):
-            x = self._net_points(points[s:s + self.chunk_points]).clamp(-1.0, 1.0)
-            n = torch.nn.functional.normalize(torch.as_tensor(normals[s:s + len(x)], dtype=torch.float32,
-                                                              device=self.device), dim=-1)
-            out[s:s + len(x)] = self.net.colour(self.net.geometry(x), n, -n).cpu().numpy()
+        step = max(1, self.chunk_points // (k if eyes is not None else 1))
+        for s in range(0, len(points), step):
+            p, n = points[s:s + step], normals[s:s + step]
+            dirs, weights = -n[:, None], np.ones((len(p), 1))
+            if eyes is not None:
+                dirs, weights = frontal_views(p, n, np.asarray(eyes, dtype=np.float64), k, sharpness, min_cos)
+            geo = self.net.geometry(self._net_points(p).clamp(-1.0, 1.0))
+            m = dirs.shape[1]
+            geo_rep = FieldOutput(*(t.repeat_interleave(m, 0) if t is not None else None
+                                    for t in (geo.sdf, geo.grad, geo.geo, geo.enc, geo.x)))
+            colour = self.net.colour(geo_rep, self._tensor(np.repeat(n, m, 0)), self._tensor(dirs.reshape(-1, 3)))
+            colour = colour.view(len(p), m, 3).cpu().numpy()
+            out[s:s + len(p)] = (colour * weights[..., None]).sum(1) / weights.sum(1, keepdims=True)
         return out
 
     @torch.no_grad()
@@ -231,6 +251,22 @@ class NeusField:
         net = NeusNetwork(FieldSpec(**state["field_spec"]))
         net.load_state_dict(state["network"])
         return cls(net, np.asarray(state["aabb"]), RenderSpec(**state["render_spec"]), device)
+
+
+def frontal_views(points: np.ndarray, normals: np.ndarray, eyes: np.ndarray, k: int, sharpness: float,
+                   min_cos: float) -> tuple[np.ndarray, np.ndarray]:
+    """N x k unit viewing directions (camera to point) of each point's k most frontal `eyes`, and their weights
+    cos^sharpness (0 for cameras under min_cos; a point with none is seen along its normal, weight 1)."""
+    to_eye = eyes[None] - points[:, None]                                        # N x M x 3
+    dist = np.linalg.norm(to_eye, axis=-1)
+    cos = np.einsum("nmc,nc->nm", to_eye, normals) / dist
+    best = np.argsort(-cos, axis=1)[:, :k]
+    cos_k = np.take_along_axis(cos, best, 1)
+    dirs = -np.take_along_axis(to_eye / dist[..., None], best[..., None], 1)
+    weights = np.where(cos_k > min_cos, np.maximum(cos_k, 0.0) ** sharpness, 0.0)
+    none = weights.sum(1) == 0
+    dirs[none], weights[none] = -normals[none, None], np.eye(1, k)
+    return dirs, weights
 
 
 def _box_sdf(points: np.ndarray, aabb: np.ndarray) -> np.ndarray:

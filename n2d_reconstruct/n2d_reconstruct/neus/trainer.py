@@ -154,7 +154,7 @@ PRESETS: dict[str, dict] = {
                  lr_variance=3e-3, pretrain_steps=100, pretrain_points=2048, checkpoint_every=100),
     "cpu": dict(levels=16, log2_table=18, max_res=1024, rays=1024, coarse_samples=32, importance_samples=32,
                 up_sample_steps=4, coarse_every=4, steps=6000, warmup_steps=200, cos_anneal_steps=1000,
-                pretrain_steps=300, checkpoint_every=500),
+                pretrain_steps=300, checkpoint_every=500, texture_steps=1500),
     "gpu": dict(levels=16, log2_table=19, max_res=2048, rays=4096, coarse_samples=64, importance_samples=64,
                 up_sample_steps=4, coarse_every=1, steps=20000, warmup_steps=500, cos_anneal_steps=5000,
                 pretrain_steps=1000, pretrain_points=65536, checkpoint_every=2000),
