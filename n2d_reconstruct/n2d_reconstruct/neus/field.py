@@ -265,7 +265,7 @@ def frontal_views(points: np.ndarray, normals: np.ndarray, eyes: np.ndarray, k: 
     dirs = -np.take_along_axis(to_eye / dist[..., None], best[..., None], 1)
     weights = np.where(cos_k > min_cos, np.maximum(cos_k, 0.0) ** sharpness, 0.0)
     none = weights.sum(1) == 0
-    dirs[none], weights[none] = -normals[none, None], np.eye(1, k)
+    dirs[none], weights[none] = -normals[none, None], np.eye(1, best.shape[1])
     return dirs, weights
 
 
