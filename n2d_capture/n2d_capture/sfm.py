@@ -146,9 +146,8 @@ def _run_colmap(work: Path, image_dir: Path, names: list[str], images: Sequence[
     params = [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *d]
     reader = pycolmap.ImageReaderOptions(camera_model="FULL_OPENCV", camera_params=",".join(map(str, params)),
                                          mask_path=str(work / "masks"))
-    # SIFT features, brute-force SIFT matching and the pair list written below, named explicitly rather than left
-    # to COLMAP's defaults: everything COLMAP uses here is made from this session's images (the capture tests pass
-    # in a network namespace with no route out)
+    # SIFT features and brute-force SIFT matching on the pair list written below, named explicitly rather than
+    # left to COLMAP's defaults: every input COLMAP gets here is made from this session's images
     extraction = pycolmap.FeatureExtractionOptions(num_threads=cfg.threads or -1,
                                                    type=pycolmap.FeatureExtractorType.SIFT)
     extraction.sift.max_num_features = cfg.max_features
