@@ -1,6 +1,7 @@
 """Benchmark of the reconstruction stage on simulator sessions: wall time, geometry and held-out image quality.
 
     python benchmarks/reconstruct.py [--session DIR] [--object box] [--views 36] [--exact] [--methods fast]
+                                     [--neus-preset cpu]
 
 The session is, in order of preference: `--session DIR` (an existing capture session of a sample
 object standing at the plate centre, e.g. from `benchmarks/capture.py --out DIR`); else a new one
@@ -23,6 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
 from n2d_sim.session import render_session
@@ -59,20 +61,20 @@ def _met(ok: bool) -> str:
     return "yes" if ok else "NO"
 
 
-def _rows(method: str, report: dict, wall_s: float) -> list[tuple[str, ...]]:
+def _rows(label: str, method: str, report: dict, wall_s: float) -> list[tuple[str, ...]]:
     goals, g, h = GOALS.get(method, {}), report["geometry"], report["heldout"]
-    rows = [(method, "wall time", f"{wall_s:.0f} s",
+    rows = [(label, "wall time", f"{wall_s:.0f} s",
              f"<= {goals['seconds']} s" if "seconds" in goals else "", _met(wall_s <= goals["seconds"])
              if "seconds" in goals else "")]
     phases = ", ".join(f"{k} {v:.0f}" for k, v in report["timings_s"].items() if k != "total")
-    rows.append((method, "  phases (s)", phases, "", ""))
-    rows.append((method, "Chamfer", f"{g['chamfer_mm']:.3f} mm = {g['chamfer_pct_diameter']:.2f} % of diameter",
+    rows.append((label, "  phases (s)", phases, "", ""))
+    rows.append((label, "Chamfer", f"{g['chamfer_mm']:.3f} mm = {g['chamfer_pct_diameter']:.2f} % of diameter",
                  f"<= {goals['chamfer_pct']} %", _met(g["chamfer_pct_diameter"] <= goals["chamfer_pct"])))
-    rows.append((method, "  accuracy / completeness", f"{g['accuracy_mm']:.3f} / {g['completeness_mm']:.3f} mm",
+    rows.append((label, "  accuracy / completeness", f"{g['accuracy_mm']:.3f} / {g['completeness_mm']:.3f} mm",
                  "", ""))
-    rows.append((method, f"F-score at {g['fscore_threshold_mm']:g} mm", f"{g['fscore']:.3f}", "", ""))
+    rows.append((label, f"F-score at {g['fscore_threshold_mm']:g} mm", f"{g['fscore']:.3f}", "", ""))
     worst = max(abs(x) for x in g["bbox_size_error_pct"])
-    rows.append((method, "bbox size error x, y, z", ", ".join(f"{x:+.2f} %" for x in g["bbox_size_error_pct"]),
+    rows.append((label, "bbox size error x, y, z", ", ".join(f"{x:+.2f} %" for x in g["bbox_size_error_pct"]),
                  f"within {BBOX_GOAL_PCT} %", _met(worst <= BBOX_GOAL_PCT)))
     if h:
         # Simulated sessions also hold noise-free images: the goal is judged against those, since against the
@@ -81,17 +83,17 @@ def _rows(method: str, report: dict, wall_s: float) -> list[tuple[str, ...]]:
         for name in ("field", "mesh"):
             if f"{name}_psnr_db" not in h:
                 continue
-            label = "radiance field" if name == "field" else "textured mesh"
+            what = "radiance field" if name == "field" else "textured mesh"
             for key, against in ((name, "photo"), (f"clean_{name}", "noise-free render")):
                 if f"{key}_psnr_db" not in h:
                     continue
                 judged = name == "field" and "psnr_db" in goals and (key != name or not clean)
                 ok = h[f"{key}_psnr_db"] >= goals.get("psnr_db", 0) and h[f"{key}_ssim"] >= goals.get("ssim", 0)
-                rows.append((method, f"held-out {label} vs {against}: PSNR, SSIM, FLIP", _image_scores(h, key),
+                rows.append((label, f"held-out {what} vs {against}: PSNR, SSIM, FLIP", _image_scores(h, key),
                              f">= {goals['psnr_db']} dB, {goals['ssim']}" if judged else "",
                              _met(ok) if judged else ""))
         if clean:
-            rows.append((method, "  sensor noise: the photo vs its noise-free render", _image_scores(h, "clean_photo"),
+            rows.append((label, "  sensor noise: the photo vs its noise-free render", _image_scores(h, "clean_photo"),
                          "(a perfect model's score vs the photo)", ""))
     return rows
 
@@ -107,6 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--views", type=int, default=36, help="views of a new session")
     parser.add_argument("--exact", action="store_true", help="a new session with the simulator's exact poses/masks")
     parser.add_argument("--methods", default="fast", help="comma-separated methods to run")
+    parser.add_argument("--neus-preset", default="cpu", help="NeuS config preset (tiny, cpu, gpu)")
     parser.add_argument("--out", type=Path, help="keep the models here (default: a temporary directory)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="n2d-bench-reconstruct-") as tmp:
@@ -114,11 +117,12 @@ def main(argv: list[str] | None = None) -> None:
         out_root = args.out or Path(tmp)
         rows = []
         for method in args.methods.split(","):
-            cfg = ReconstructConfig(method=method, object_name=args.object)
+            cfg = ReconstructConfig(method=method, object_name=args.object, neus=NeusConfig.preset(args.neus_preset))
             t0 = time.perf_counter()
             report = reconstruct(session, out_root / f"model_{method}", cfg,
                                  ground_truth=sample_object_dir(args.object), overwrite=True)
-            rows += _rows(method, report, time.perf_counter() - t0)
+            label = f"{method} ({args.neus_preset})" if method == "neus" else method
+            rows += _rows(label, method, report, time.perf_counter() - t0)
     print_table(f"Reconstruction benchmark ({args.object}; session: {described}; this machine)", rows,
                 ("method", "metric", "value", "goal", "met"))
     if args.out:
