@@ -62,7 +62,7 @@ def test_fast_path_is_metric_and_close_to_the_ground_truth(model):
     # noisy photos, and the photos themselves sit at the sensor noise (sigma ~3.7 DN: ~37 dB)
     assert held["clean_mesh_psnr_db"] > held["mesh_psnr_db"], held
     assert 33 < held["clean_photo_psnr_db"] < 42 and held["clean_photo_ssim"] < 1, held
-    assert set(report["timings_s"]) >= {"load", "geometry", "mesh", "texture", "export", "report", "total"}
+    assert set(report["timings_s"]) >= {"load", "geometry", "mesh", "denoise", "texture", "export", "report", "total"}
     assert json.loads((out / "report.json").read_text()) == report
 
 

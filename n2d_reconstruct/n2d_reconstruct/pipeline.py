@@ -2,8 +2,9 @@
 
 Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
 from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
-texture (xatlas; baked from the photos, or from the NeuS colour field) -> export (object frame,
-OBJ/GLB, models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
+denoise (bilateral normal filtering: ripples flattened, edges kept) -> texture (xatlas; baked from
+the photos, or from the NeuS colour field) -> export (object frame, OBJ/GLB, models_info.json) ->
+report (held-out metrics, geometry against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
 keeps its checkpoint there and the next run with the same config resumes from it.
 """
@@ -24,6 +25,7 @@ from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import load_session
+from n2d_reconstruct.denoise import DenoiseConfig, denoise
 from n2d_reconstruct.export import object_frame, write_model
 from n2d_reconstruct.hull import HullConfig, VisualHull, search_box
 from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
@@ -32,9 +34,10 @@ from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
 from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_views, unwrap
 
-PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.4, "texture": 0.25, "export": 0.05,
-                   "report": 0.15},
-          "neus": {"load": 0.01, "geometry": 0.85, "mesh": 0.04, "texture": 0.04, "export": 0.01, "report": 0.05}}
+PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "denoise": 0.1, "texture": 0.25,
+                   "export": 0.05, "report": 0.15},
+          "neus": {"load": 0.01, "geometry": 0.84, "mesh": 0.03, "denoise": 0.01, "texture": 0.05, "export": 0.01,
+                   "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -62,6 +65,8 @@ class ReconstructConfig:
     """Marching cubes and clean-up."""
     refine: RefineConfig = field(default_factory=RefineConfig)
     """Photo-consistency refinement of the hull."""
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
+    """Feature-preserving denoising of the mesh (both methods)."""
     texture: TextureConfig = field(default_factory=TextureConfig)
     """UV atlas and albedo."""
     neus: NeusConfig = field(default_factory=lambda: NeusConfig.preset("cpu"))
@@ -123,12 +128,15 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
         def sub(p: Progress, i=i) -> None:
             progress(replace(p, fraction=(i + p.fraction) / cfg.refine.passes))
 
-        on_plate = (mesh.vertices[:, 2] <= cfg.hull.plate_clearance_m + cfg.mesh.voxel_m) & \
-                   (mesh.vertex_normals[:, 2] < -0.5)
-        mesh, stats = refine_surface(mesh, views, cfg.refine, sub, fixed=on_plate)
+        mesh, stats = refine_surface(mesh, views, cfg.refine, sub, fixed=_on_plate(mesh, cfg))
         mesh = clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations))
         passes.append(stats)
     return mesh, passes[-1] | {"passes": passes}
+
+
+def _on_plate(mesh, cfg: ReconstructConfig) -> np.ndarray:
+    """Vertices of the cut on the plate (exact: they stay)."""
+    return (mesh.vertices[:, 2] <= cfg.hull.plate_clearance_m + cfg.mesh.voxel_m) & (mesh.vertex_normals[:, 2] < -0.5)
 
 
 def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: ProgressFn):
@@ -161,6 +169,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         refined = None
         if cfg.method == "fast":
             mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
+        mesh = phases.run("denoise", denoise, mesh, cfg.denoise, _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
         info = phases.run("export", lambda progress: write_model(writer.path, tm.transformed(inv_T(T_turntable_obj)),

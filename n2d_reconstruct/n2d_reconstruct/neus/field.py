@@ -196,7 +196,9 @@ class NeusField:
         e.g. the training cameras) it is the colour seen from the `k` most frontal of them, blended with
         weights cos^sharpness (cameras under `min_cos` left out; none left: along the normal), so the colour
         network is only asked about directions it was trained on (from a ring of views, a side's normal
-        direction is not one of them).
+        direction is not one of them). Each colour is the field's where the viewing ray through the point meets
+        the field's own surface (Newton steps along the ray), with the field's normal there: what that camera's
+        pixel saw. A mesh smoothed or denoised after meshing lies a little off that surface.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
@@ -208,14 +210,24 @@ class NeusField:
             dirs, weights = -n[:, None], np.ones((len(p), 1))
             if eyes is not None:
                 dirs, weights = frontal_views(p, n, np.asarray(eyes, dtype=np.float64), k, sharpness, min_cos)
-            geo = self.net.geometry(self._net_points(p).clamp(-1.0, 1.0))
             m = dirs.shape[1]
-            geo_rep = FieldOutput(*(t.repeat_interleave(m, 0) if t is not None else None
-                                    for t in (geo.sdf, geo.grad, geo.geo, geo.enc, geo.x)))
-            colour = self.net.colour(geo_rep, self._tensor(np.repeat(n, m, 0)), self._tensor(dirs.reshape(-1, 3)))
+            rays = self._tensor(dirs.reshape(-1, 3))
+            geo = self._along_ray(self._net_points(p).clamp(-1.0, 1.0).repeat_interleave(m, 0), rays)
+            colour = self.net.colour(geo, functional.normalize(geo.grad, dim=-1), rays)
             colour = colour.view(len(p), m, 3).cpu().numpy()
             out[s:s + len(p)] = (colour * weights[..., None]).sum(1) / weights.sum(1, keepdims=True)
         return out
+
+    def _along_ray(self, x: torch.Tensor, dirs: torch.Tensor, steps: int = 3, max_step: float = 0.05) -> FieldOutput:
+        """Geometry (with gradient) where rays along unit `dirs` through normalised points `x` meet the zero
+        level set: Newton steps on sdf(x + t d), each at most `max_step` (normalised units)."""
+        for _ in range(steps):
+            geo = self.net.geometry(x, gradient=True)
+            slope = (geo.grad * dirs).sum(-1)
+            slope = torch.minimum(slope, -0.1 * geo.grad.norm(dim=-1).clamp_min(1e-6))  # the ray enters the surface
+            t = (-geo.sdf / slope).clamp(-max_step, max_step)
+            x = (x + t[:, None] * dirs).clamp(-1.0, 1.0)
+        return self.net.geometry(x, gradient=True)
 
     @torch.no_grad()
     def render(self, K: np.ndarray, T_turntable_cam: np.ndarray, width: int, height: int,
