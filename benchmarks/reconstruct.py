@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 from n2d_reconstruct.neus import NeusConfig
+from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
 from n2d_sim.session import render_session
@@ -109,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--views", type=int, default=36, help="views of a new session")
     parser.add_argument("--exact", action="store_true", help="a new session with the simulator's exact poses/masks")
     parser.add_argument("--methods", default="fast", help="comma-separated methods to run")
-    parser.add_argument("--neus-preset", default="cpu", help="NeuS config preset (tiny, cpu, gpu)")
+    parser.add_argument("--neus-preset", default="cpu", choices=sorted(PRESETS), help="NeuS config preset")
     parser.add_argument("--out", type=Path, help="keep the models here (default: a temporary directory)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="n2d-bench-reconstruct-") as tmp:

@@ -69,3 +69,12 @@ def test_denoise_config_is_checked():
         DenoiseConfig(sigma_r=0.0)
     with pytest.raises(ValueError, match="rings"):
         DenoiseConfig(rings=0)
+
+
+def test_denoise_survives_a_degenerate_face():
+    box = _rippled(_box(), 0.0003)
+    n = len(box.vertices)  # plus a zero-area face on three coincident vertices of its own: no neighbour has area
+    mesh = trimesh.Trimesh(np.vstack([box.vertices, np.zeros((3, 3))]), np.vstack([box.faces, [[n, n + 1, n + 2]]]),
+                           process=False)
+    out = denoise(mesh, DenoiseConfig(iterations=10, vertex_iterations=10))
+    assert np.isfinite(out.vertices).all()

@@ -145,7 +145,7 @@ def test_save_load_and_albedo(trained, tmp_path):
     np.testing.assert_allclose(checkpoint.sdf(points), field.sdf(points), atol=1e-6)
 
 
-def testfrontal_views_pick_the_most_frontal_cameras_and_fall_back_to_the_normal():
+def test_frontal_views_pick_the_most_frontal_cameras_and_fall_back_to_the_normal():
     points = np.zeros((2, 3))
     normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
     eyes = np.array([[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

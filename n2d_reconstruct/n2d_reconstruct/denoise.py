@@ -68,7 +68,8 @@ def filter_normals(vertices: np.ndarray, faces: np.ndarray, cfg: DenoiseConfig) 
     for _ in range(cfg.iterations):
         weight = spatial * np.exp(-np.sum((normals[i] - normals[j]) ** 2, axis=1) / (2.0 * cfg.sigma_r**2))
         summed = sparse.csr_matrix((weight, (i, j)), shape=(len(faces), len(faces))) @ normals
-        normals = summed / np.linalg.norm(summed, axis=1, keepdims=True)
+        length = np.linalg.norm(summed, axis=1, keepdims=True)
+        normals = np.where(length > 0, summed / np.maximum(length, 1e-30), normals)  # degenerate patches keep theirs
     return normals
 
 
