@@ -47,6 +47,10 @@ class RefineConfig:
     """Patch samples per side, one pixel on the object apart."""
     views_per_vertex: int = 7
     """Most frontal views compared per vertex (the first is the reference)."""
+    min_separation_deg: float = 5.0
+    """Views compared for a vertex are at least this far apart as seen from it: a denser ring then gives the same
+    baselines, not shorter ones that blur the NCC's peak over depth (5 keeps all neighbours in a 36-view ring at
+    45 degrees elevation, 7 degrees apart, and every other one of 72)."""
     min_cos: float = 0.4
     """Views that see the surface more obliquely than this cosine are not used."""
     min_ncc: float = 0.5
@@ -75,6 +79,8 @@ class RefineConfig:
             raise ValueError("step_px and max_depth_m must be > 0")
         if self.views_per_vertex < 2 or self.patch_size < 3:
             raise ValueError("views_per_vertex must be >= 2 and patch_size >= 3")
+        if not 0 <= self.min_separation_deg < 90:
+            raise ValueError("min_separation_deg must be in [0, 90)")
 
 
 def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progress: ProgressFn = no_progress,
@@ -88,8 +94,7 @@ def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progr
     pixel_m = float(np.median(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1))) / views.K[0, 0]
     step = cfg.step_px * pixel_m
     cos, visible = _visibility(mesh, views, cfg, step)
-    order = np.argsort(-np.where(visible, cos, -1.0), axis=1)[:, :cfg.views_per_vertex]
-    usable = np.take_along_axis(visible, order, axis=1).all(1)
+    order, usable = pick_views(v, views.T_turntable_cam[:, :3, 3], cos, visible, cfg)
     depths = np.arange(-cfg.outward_m, cfg.max_depth_m + 1e-12, step)
     found = np.full(len(v), np.nan)
     idx = np.flatnonzero(usable)
@@ -149,6 +154,25 @@ def _visibility(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, step: fl
         cos[:, i] = np.einsum("nc,nc->n", n, to_cam) / np.linalg.norm(to_cam, axis=1)
         visible[:, i] = seen & (cos[:, i] > cfg.min_cos)
     return cos, visible
+
+
+def pick_views(v: np.ndarray, eyes: np.ndarray, cos: np.ndarray, visible: np.ndarray,
+               cfg: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The views compared for each vertex: V x views_per_vertex indices into the N camera centres `eyes`, the
+    highest `cos` (V x N) first, each visible and at least min_separation_deg from those before it as seen from
+    the vertex; and whether a vertex got all of them."""
+    to_cam = eyes[None] - v[:, None]
+    to_cam /= np.linalg.norm(to_cam, axis=2, keepdims=True)
+    score = np.where(visible, cos, -np.inf)
+    order = np.zeros((len(v), cfg.views_per_vertex), dtype=int)
+    found = np.ones(len(v), dtype=bool)
+    rows = np.arange(len(v))
+    limit = np.cos(np.radians(cfg.min_separation_deg))
+    for k in range(cfg.views_per_vertex):
+        order[:, k] = score.argmax(1)
+        found &= np.isfinite(score[rows, order[:, k]])
+        score[np.einsum("vnc,vc->vn", to_cam, to_cam[rows, order[:, k]]) > limit] = -np.inf
+    return order, found
 
 
 def _tangents(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,48 @@
+"""Choice of the views the fast path's photo-consistency search compares per vertex."""
+
+import numpy as np
+
+from n2d_reconstruct.refine import RefineConfig, pick_views
+
+
+def _ring(views: int, elevation_deg: float = 45.0, distance_m: float = 0.5) -> np.ndarray:
+    azimuth = np.arange(views) * 2 * np.pi / views
+    el = np.radians(elevation_deg)
+    return distance_m * np.stack([np.cos(el) * np.cos(azimuth), np.cos(el) * np.sin(azimuth),
+                                  np.full(views, np.sin(el))], 1)
+
+
+def _frontal(eyes: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    to_cam = eyes / np.linalg.norm(eyes, axis=1, keepdims=True)
+    cos = (to_cam @ normal)[None]
+    return cos, cos > 0.4
+
+
+def _angles_deg(eyes: np.ndarray, picked: np.ndarray) -> np.ndarray:
+    d = eyes[picked] / np.linalg.norm(eyes[picked], axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(d @ d.T, -1, 1)))[np.triu_indices(len(picked), 1)]
+
+
+def test_a_dense_ring_gives_the_baselines_of_a_sparse_one():
+    cfg = RefineConfig()
+    normal = np.array([1.0, 0.0, 0.0])
+    sparse_eyes, dense_eyes = _ring(36), _ring(72)
+    sparse, ok_sparse = pick_views(np.zeros((1, 3)), sparse_eyes, *_frontal(sparse_eyes, normal), cfg)
+    dense, ok_dense = pick_views(np.zeros((1, 3)), dense_eyes, *_frontal(dense_eyes, normal), cfg)
+    assert ok_sparse.all() and ok_dense.all()
+    cos, _ = _frontal(sparse_eyes, normal)
+    # 36 views, 7 degrees apart: the plain most frontal seven, the most frontal first
+    assert sparse[0, 0] == np.argmax(cos[0])
+    assert set(sparse[0]) == set(np.argsort(-cos[0])[:cfg.views_per_vertex])
+    # 72 views: every other one, so the same directions and baselines as 36
+    assert _angles_deg(dense_eyes, dense[0]).min() >= cfg.min_separation_deg
+    assert np.allclose(np.sort(_angles_deg(dense_eyes, dense[0])), np.sort(_angles_deg(sparse_eyes, sparse[0])))
+
+
+def test_a_vertex_seen_by_too_few_views_is_not_usable():
+    cfg = RefineConfig()
+    eyes = _ring(36)
+    cos, visible = _frontal(eyes, np.array([1.0, 0.0, 0.0]))
+    visible[:, np.argsort(-cos[0])[3:]] = False
+    _, ok = pick_views(np.zeros((1, 3)), eyes, cos, visible, cfg)
+    assert not ok.any()
