@@ -39,6 +39,15 @@ def test_a_dense_ring_gives_the_baselines_of_a_sparse_one():
     assert np.allclose(np.sort(_angles_deg(dense_eyes, dense[0])), np.sort(_angles_deg(sparse_eyes, sparse[0])))
 
 
+def test_no_separation_gives_the_most_frontal_views():
+    cfg = RefineConfig(min_separation_deg=0.0)
+    eyes = _ring(72)
+    cos, visible = _frontal(eyes, np.array([0.6, 0.0, 0.8]))
+    picked, ok = pick_views(np.zeros((1, 3)), eyes, cos, visible, cfg)
+    assert ok.all()
+    assert list(picked[0]) == list(np.argsort(-cos[0], kind="stable")[:cfg.views_per_vertex])
+
+
 def test_a_vertex_seen_by_too_few_views_is_not_usable():
     cfg = RefineConfig()
     eyes = _ring(36)

@@ -172,6 +172,7 @@ def pick_views(v: np.ndarray, eyes: np.ndarray, cos: np.ndarray, visible: np.nda
         order[:, k] = score.argmax(1)
         found &= np.isfinite(score[rows, order[:, k]])
         score[np.einsum("vnc,vc->vn", to_cam, to_cam[rows, order[:, k]]) > limit] = -np.inf
+        score[rows, order[:, k]] = -np.inf  # at 0 degrees the rounded self-product may not exceed cos(0)
     return order, found
 
 
