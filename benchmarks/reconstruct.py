@@ -7,7 +7,8 @@ The session is, in order of preference: `--session DIR` (an existing capture ses
 object standing at the plate centre, e.g. from `benchmarks/capture.py --out DIR`); else a new one
 captured like `n2d capture` does it (servo emulator + real driver + sim camera, poses from the
 board, masks by segmentation: what a lab gets); with `--exact`, one rendered with the simulator's
-exact poses and masks (the reconstruction alone). Each method then reconstructs it with its default
+exact poses and masks and converged renders plus sensor noise (the reconstruction alone; see
+`n2d_sim.session`). Each method then reconstructs it with its default
 config and is measured against the sample object's true mesh: Chamfer distance (mean of both
 directions, exact point-to-surface), F-score at 1 mm, bounding-box size error, and PSNR / SSIM /
 FLIP of held-out views (every 8th, over the object mask) for the textured mesh and, for NeuS, the
@@ -22,13 +23,14 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
-from n2d_sim.session import render_session
+from n2d_sim.session import CONVERGED_SAMPLES, render_session
 from n2d_sim.world import SimWorldConfig
 from table import print_table
 
@@ -46,8 +48,10 @@ def _session(args, tmp: Path) -> tuple[Path, str]:
     session = tmp / "session"
     world = SimWorldConfig(object=args.object)
     if args.exact:
+        world = replace(world, samples=CONVERGED_SAMPLES)
         render_session(session, world, args.views)
-        return session, f"{args.views} views, {world.width}x{world.height}, exact poses and masks"
+        return session, (f"{args.views} views, {world.width}x{world.height}, exact poses and masks, "
+                         f"{world.samples} samples per pixel")
     sys.path.insert(0, str(Path(__file__).parent))
     from capture import run as capture_run  # the capture benchmark's recording: the same code as n2d capture
 

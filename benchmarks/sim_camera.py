@@ -1,10 +1,14 @@
 """Benchmark of the simulated camera: new-angle render latency and republish-with-noise rate.
 
     python benchmarks/sim_camera.py [--angles 10] [--set samples=4 --set denoiser=none] [--sheet /tmp/sim.png]
+                                    [--reference-samples 256]
 
 Prints the settings, the worker start time, the render latency over new plate angles (after one
 warm-up render) and the rate at which the last frame can be republished with fresh sensor noise.
 `--sheet` also writes a contact sheet of the rendered frames with the object mask outlined.
+`--reference-samples N` renders the same angles again at N samples per pixel and prints how far the
+frames are from them (PSNR / SSIM over the object mask): Monte-Carlo noise and denoiser artefacts change
+from view to view, so this is the best any 3-D model of the object can score against these frames.
 """
 
 from __future__ import annotations
@@ -13,12 +17,14 @@ import argparse
 import math
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from n2d_common.config import apply_overrides, from_dict, to_dict
 from n2d_common.images import contact_sheet, draw_mask_outline, write_png
+from n2d_reconstruct.metrics import psnr, ssim
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
 from table import print_table
@@ -31,6 +37,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="SimWorldConfig override, e.g. samples=4 (repeatable)")
     parser.add_argument("--sheet", type=Path, help="write a contact sheet of the frames (PNG)")
+    parser.add_argument("--reference-samples", type=int, default=0,
+                        help="also compare the frames with renders at this many samples per pixel")
     args = parser.parse_args(argv)
     cfg = from_dict(SimWorldConfig, apply_overrides(to_dict(SimWorldConfig()), args.overrides))
 
@@ -64,6 +72,8 @@ def main(argv: list[str] | None = None) -> None:
         ("new-angle rate", f"{1 / mean:.2f} frames/s"),
         ("republish with noise", f"{noise_s * 1000:.1f} ms -> {1 / noise_s:.0f} frames/s"),
     ]
+    if args.reference_samples:
+        rows += _consistency(cfg, frames, args.reference_samples)
     print_table("simulated camera benchmark", rows)
 
     if args.sheet:
@@ -71,6 +81,17 @@ def main(argv: list[str] | None = None) -> None:
         labels = [f"{math.degrees(f.angle_rad):.0f} deg, {f.render_s:.2f} s" for f in frames]
         write_png(args.sheet, contact_sheet(images, labels, cols=min(4, len(images))))
         print(f"  contact sheet: {args.sheet}")
+
+
+def _consistency(cfg: SimWorldConfig, frames: list, samples: int) -> list[tuple[str, str]]:
+    """Rows: PSNR / SSIM (object mask) of `frames` against renders of the same angles at `samples` spp."""
+    with SimCamera(replace(cfg, samples=samples)) as cam:
+        references = [cam.render(f.angle_rad) for f in frames]
+    db = [psnr(r.rgb, f.rgb, r.mask) for f, r in zip(frames, references)]
+    sim = [ssim(r.rgb, f.rgb, r.mask) for f, r in zip(frames, references)]
+    return [(f"vs {samples}-sample renders (object mask): PSNR mean / min",
+             f"{statistics.mean(db):.2f} / {min(db):.2f} dB"),
+            ("  SSIM mean / min", f"{statistics.mean(sim):.4f} / {min(sim):.4f}")]
 
 
 if __name__ == "__main__":
