@@ -218,16 +218,21 @@ class NeusField:
             out[s:s + len(p)] = (colour * weights[..., None]).sum(1) / weights.sum(1, keepdims=True)
         return out
 
-    def _along_ray(self, x: torch.Tensor, dirs: torch.Tensor, steps: int = 3, max_step: float = 0.05) -> FieldOutput:
+    def _along_ray(self, x: torch.Tensor, dirs: torch.Tensor, steps: int = 3, max_step: float = 0.05,
+                   tolerance: float = 0.005) -> FieldOutput:
         """Geometry (with gradient) where rays along unit `dirs` through normalised points `x` meet the zero
-        level set: Newton steps on sdf(x + t d), each at most `max_step` (normalised units)."""
+        level set: Newton steps on sdf(x + t d), each at most `max_step` (normalised units). A ray whose steps
+        end further than `tolerance` from the level set (a grazing ray that stepped off the surface, where the
+        colour network's answer is meaningless) keeps its starting point."""
+        start = x
         for _ in range(steps):
             geo = self.net.geometry(x, gradient=True)
             slope = (geo.grad * dirs).sum(-1)
             slope = torch.minimum(slope, -0.1 * geo.grad.norm(dim=-1).clamp_min(1e-6))  # the ray enters the surface
             t = (-geo.sdf / slope).clamp(-max_step, max_step)
             x = (x + t[:, None] * dirs).clamp(-1.0, 1.0)
-        return self.net.geometry(x, gradient=True)
+        off = self.net.geometry(x).sdf.abs() > tolerance
+        return self.net.geometry(torch.where(off[:, None], start, x), gradient=True)
 
     @torch.no_grad()
     def render(self, K: np.ndarray, T_turntable_cam: np.ndarray, width: int, height: int,
