@@ -40,6 +40,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reference-samples", type=int, default=0,
                         help="also compare the frames with renders at this many samples per pixel")
     args = parser.parse_args(argv)
+    if args.reference_samples < 0:
+        parser.error("--reference-samples must be >= 1 (0: no comparison)")
     cfg = from_dict(SimWorldConfig, apply_overrides(to_dict(SimWorldConfig()), args.overrides))
 
     t0 = time.perf_counter()

@@ -7,12 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from torch.nn import functional
 
 from n2d_common.errors import Cancelled, N2DError
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.neus.encoding import HashGrid
-from n2d_reconstruct.neus.field import frontal_views
+from n2d_reconstruct.neus.field import NeusNetwork, frontal_views
 from n2d_sim.session import render_session, small_world
 
 BOX_HALF_M = np.array([0.045, 0.03, 0.07])
@@ -155,6 +156,27 @@ def test_frontal_views_pick_the_most_frontal_cameras_and_fall_back_to_the_normal
     # no camera sees the underside: it is seen along its normal alone
     np.testing.assert_allclose(dirs[1, 0], [0.0, 0.0, 1.0])
     np.testing.assert_allclose(weights[1], [1.0, 0.0])
+
+
+def test_along_ray_meets_the_surface_and_keeps_a_grazing_ray_on_it():
+    """A ray towards the (untrained, roughly spherical) surface reaches it; a ray tangent to it from a point
+    just outside would step off along the tangent, so it keeps its start."""
+    torch.manual_seed(0)
+    cfg = NeusConfig.preset("tiny")
+    net = NeusNetwork(cfg.field_spec())
+    field = NeusField(net, np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), cfg.render_spec(), "cpu")
+    with torch.no_grad():  # the first point on the +x axis 0.08 outside the surface (within the steps' reach)
+        axis = torch.linspace(0.0, 1.0, 201)[:, None] * torch.tensor([[1.0, 0.0, 0.0]])
+        outside = axis[int(torch.nonzero(net.sdf(axis) > 0.08)[0, 0])][None]
+    hit = field._along_ray(outside, torch.tensor([[-1.0, 0.0, 0.0]]))
+    assert abs(float(hit.sdf[0].detach())) < 1e-3 and float(hit.x[0, 0].detach()) < float(outside[0, 0]) - 0.05
+    normal = functional.normalize(hit.grad.detach(), dim=-1)
+    start = hit.x.detach() + 0.004 * normal  # a mesh vertex a little off the field's surface
+    tangent = functional.normalize(torch.linalg.cross(normal, torch.tensor([[0.0, 0.0, 1.0]])), dim=-1)
+    stepped = field._along_ray(start, tangent, tolerance=float("inf"))
+    assert abs(float(stepped.sdf[0].detach())) > 0.005  # unguarded, the steps leave the surface
+    kept = field._along_ray(start, tangent)
+    assert torch.equal(kept.x, start)
 
 
 def test_cancel_saves_and_a_rerun_resumes_from_that_step(session, tmp_path):

@@ -36,6 +36,7 @@ CONVERGED_SAMPLES = 64
 """Samples per pixel of sessions rendered to measure reconstruction: 41 dB PSNR from a 256-sample render of
 the box (4 samples: 30-32 dB)."""
 
+
 @dataclass
 class GroundTruth:
     """Where the simulated object stands in a session's turntable frame."""
@@ -96,8 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=CONVERGED_SAMPLES, help="Cycles samples per pixel")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    world = SimWorldConfig(object=args.object, width=args.width, height=args.height,
-                           focal_px=SimWorldConfig().focal_px * args.width / 640, samples=args.samples)
+    if args.views < 1:
+        parser.error("--views must be >= 1")
+    try:
+        world = SimWorldConfig(object=args.object, width=args.width, height=args.height,
+                               focal_px=SimWorldConfig().focal_px * args.width / 640, samples=args.samples)
+    except ValueError as exc:
+        parser.error(str(exc))
     render_session(args.out, world, args.views, overwrite=args.overwrite)
     return 0
 
