@@ -1,5 +1,6 @@
 """Small helpers shared by the test files (import as `from helpers import ...`)."""
 
+import threading
 import time
 
 import cv2
@@ -12,6 +13,26 @@ def wait_future(future, timeout_s: float = 30.0, poll_s: float = 0.01):
         assert time.monotonic() < deadline, "timed out"
         time.sleep(poll_s)
     return future.result()
+
+
+def send_and_cancel(client, request, when, timeout_s: float = 300.0):
+    """Send an action goal and cancel it at the first feedback for which `when(feedback)` holds.
+
+    Returns the goal handle and that feedback. The cancel is sent from the test's thread once the goal handle is
+    known: feedback can arrive before the goal response, so a feedback callback cannot cancel by itself."""
+    seen = []
+    reached = threading.Event()
+
+    def on_feedback(message):
+        if not reached.is_set() and when(message.feedback):
+            seen.append(message.feedback)
+            reached.set()
+
+    goal = wait_future(client.send_goal_async(request, feedback_callback=on_feedback), 60)
+    assert goal.accepted
+    assert reached.wait(timeout_s), "no matching feedback"
+    wait_future(goal.cancel_goal_async(), 60)
+    return goal, seen[0]
 
 
 def write_photos(folder, images, suffix):

@@ -5,7 +5,7 @@ import json
 
 import pytest
 from action_msgs.msg import GoalStatus
-from helpers import wait_future
+from helpers import send_and_cancel, wait_future
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
@@ -29,13 +29,8 @@ def test_generate_dataset_action(tmp_path, ros_domain):
             assert client.wait_for_server(timeout_sec=60), logs[-20:]
 
             # cancel once the first frame is done: the goal ends canceled, finished frames stay for a resume
-            def cancel_after_a_frame(f):
-                if f.feedback.frames_done >= 1:
-                    goal.cancel_goal_async()
-
             request = GenerateDataset.Goal(model_dirs=models, dataset_dir=str(out), frames=4, config_yaml=TINY)
-            goal = wait_future(client.send_goal_async(request, feedback_callback=cancel_after_a_frame), 60)
-            assert goal.accepted
+            goal, _ = send_and_cancel(client, request, lambda f: f.frames_done >= 1)
             result = wait_future(goal.get_result_async(), 300)
             assert result.status == GoalStatus.STATUS_CANCELED, (result.result.message, logs[-20:])
             assert not out.exists() and out.with_name("ds.partial").is_dir()

@@ -5,7 +5,7 @@ import json
 
 import pytest
 from action_msgs.msg import GoalStatus
-from helpers import wait_future
+from helpers import send_and_cancel, wait_future
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
@@ -31,9 +31,7 @@ def test_reconstruct_action(tmp_path, ros_domain):
             # cancel as soon as the job reports: the worker stops, the partial directory stays for a resume
             cancelled = tmp_path / "cancelled"
             request = Reconstruct.Goal(session_dir=str(session), model_dir=str(cancelled), config_yaml=SMALL)
-            goal = wait_future(client.send_goal_async(request, feedback_callback=lambda _: goal.cancel_goal_async()),
-                               60)
-            assert goal.accepted
+            goal, _ = send_and_cancel(client, request, lambda _: True)
             result = wait_future(goal.get_result_async(), 300)
             assert result.status == GoalStatus.STATUS_CANCELED, (result.result.message, logs[-20:])
             assert not cancelled.exists() and cancelled.with_name("cancelled.partial").is_dir()

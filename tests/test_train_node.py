@@ -6,7 +6,7 @@ import json
 
 import pytest
 from action_msgs.msg import GoalStatus
-from helpers import wait_future
+from helpers import send_and_cancel, wait_future
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
@@ -43,18 +43,10 @@ def test_train_action(tmp_path, ros_domain):
             # cancel at the first training step: the goal ends canceled, the checkpoint stays for a resume
             request = Train.Goal(dataset_dir=str(dataset), model_dir=str(model), preset="tiny",
                                  config_yaml=f"{{epochs: {EPOCHS}}}")
-            first = []
-
-            def cancel_at_first_step(f):
-                if f.feedback.stage == "training" and not first:
-                    first.append(f.feedback)
-                    goal.cancel_goal_async()
-
-            goal = wait_future(client.send_goal_async(request, feedback_callback=cancel_at_first_step), 60)
-            assert goal.accepted
+            goal, first = send_and_cancel(client, request, lambda f: f.stage == "training")
             result = wait_future(goal.get_result_async(), 120)
             assert result.status == GoalStatus.STATUS_CANCELED, (result.result.message, logs[-20:])
-            assert first and first[0].steps_total == EPOCHS and first[0].step >= 1 and first[0].loss > 0
+            assert first.steps_total == EPOCHS and first.step >= 1 and first.loss > 0
             assert not model.exists() and (tmp_path / "dope.partial" / "checkpoint.pt").is_file()
 
             # resume: training continues after the saved step and ends in a complete model directory
