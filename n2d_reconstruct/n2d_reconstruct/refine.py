@@ -5,8 +5,15 @@ a "roof" over the top of an object and slabs over faces seen only obliquely. The
 inside it. For every vertex, a small patch tangent to the surface is swept inward along the normal;
 at each depth the patch is projected into the views that see the vertex most frontally, and the
 normalised cross-correlation (NCC) of its grey values with the reference (most frontal) view is
-averaged. The depth with the best score wins where the score is high and the patch textured; the
-depths are then median-filtered over the mesh so single bad matches do not make spikes.
+averaged. The depth with the best score wins where the score is high and the patch textured.
+
+The found depths become displacement vectors (inward along each normal), and a robust membrane fitted
+to them moves every vertex: unfound vertices are interpolated, single bad matches damped. Fitting
+vectors, not depths along the normals, lets a roof's tilted sides settle onto the flat top under them
+(box: height error +3.7 % -> +1.7 %). The silhouettes bound the search: each ray that grazes a mask's
+outline touches the object, so one hull vertex on it is held (`silhouette_anchors`); glossy objects,
+whose reflections match at depths inside a convex surface, keep their outline (bottle: Chamfer 1.82 ->
+0.94 mm).
 """
 
 from __future__ import annotations
@@ -18,10 +25,12 @@ import torch
 import trimesh
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
+from scipy.spatial import cKDTree
 
 from n2d_common.frames import inv_T, transform_points
 from n2d_common.progress import Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import Views
+from n2d_reconstruct.hull import signed_distance_px
 from n2d_reconstruct.raster import render_depth
 
 FIXED_WEIGHT = 1000.0
@@ -66,11 +75,15 @@ class RefineConfig:
     min_agreeing_views: int = 4
     """A vertex moves only where this many of the compared views (besides the reference) agree."""
     smoothness: float = 4.0
-    """Weight of the membrane term that spreads found depths to their neighbours and smooths them."""
+    """Weight of the membrane term that spreads found displacements to their neighbours and smooths them."""
     robust_m: float = 0.0015
-    """Found depths further than this from the smoothed surface are down-weighted (Huber), metres."""
+    """Found displacements further than this from the fitted ones are down-weighted (Huber), metres."""
     smooth_iterations: int = 5
     """Taubin smoothing iterations after the vertices moved."""
+    keep_silhouettes: bool = True
+    """Hold one hull vertex on every ray that grazes a mask's outline (see `silhouette_anchors`)."""
+    silhouette_radius_px: float = 1.0
+    """Hull vertices projecting within this many pixels of an outline pixel lie on its ray."""
 
     def __post_init__(self):
         if self.passes < 1:
@@ -81,6 +94,8 @@ class RefineConfig:
             raise ValueError("views_per_vertex must be >= 2 and patch_size >= 3")
         if not 0 <= self.min_separation_deg < 90:
             raise ValueError("min_separation_deg must be in [0, 90)")
+        if self.silhouette_radius_px <= 0:
+            raise ValueError("silhouette_radius_px must be > 0")
 
 
 def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progress: ProgressFn = no_progress,
@@ -104,36 +119,72 @@ def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progr
         found[part] = _search(v[part], n[part], order[part], depths, pixel_m, views, grey, cfg)
         progress(Progress(min(1.0, (s + chunk) / max(len(idx), 1)), "refining",
                           message=f"{min(s + chunk, len(idx))}/{len(idx)} vertices"))
-    d = smooth_depths(mesh, found, cfg, fixed)
-    out = trimesh.Trimesh(v - d[:, None] * n, mesh.faces, process=False)
+    target = np.where(np.isfinite(found)[:, None], -found[:, None] * n, np.nan)
+    held = np.zeros(len(v), bool) if fixed is None else fixed.copy()
+    u = smooth_displacements(mesh, target, cfg, held)
+    if cfg.keep_silhouettes:
+        held |= silhouette_anchors(v, -np.einsum("nc,nc->n", u, n), views, cfg.silhouette_radius_px)
+        u = smooth_displacements(mesh, target, cfg, held)
+    out = trimesh.Trimesh(v + u, mesh.faces, process=False)
+    d = -np.einsum("nc,nc->n", u, n)
     stats = {"vertices": len(v), "searched": int(usable.sum()), "moved": int(np.isfinite(found).sum()),
              "median_depth_mm": round(1000 * float(np.median(d[np.isfinite(found)])) if np.isfinite(found).any()
                                       else 0.0, 3),
-             "max_depth_mm": round(1000 * float(d.max()), 3)}
+             "max_depth_mm": round(1000 * float(d.max()), 3),
+             "silhouette_anchors": int(held.sum() - (0 if fixed is None else fixed.sum()))}
     return out, stats
 
 
-def smooth_depths(mesh: trimesh.Trimesh, found: np.ndarray, cfg: RefineConfig, fixed: np.ndarray | None = None,
-                  rounds: int = 3) -> np.ndarray:
-    """Per-vertex depths minimising sum_found w (d - found)^2 + smoothness * sum_edges (d_i - d_j)^2, with
-    Huber weights w re-estimated over `rounds` (a robust membrane fit: unfound vertices are interpolated);
-    `fixed` vertices are held at depth 0 by a weight no Huber step lowers."""
+def smooth_displacements(mesh: trimesh.Trimesh, found: np.ndarray, cfg: RefineConfig,
+                         fixed: np.ndarray | None = None, rounds: int = 3) -> np.ndarray:
+    """N x 3 vertex displacements minimising sum_found w |u - found|^2 + smoothness * sum_edges |u_i - u_j|^2,
+    with Huber weights w re-estimated over `rounds` (a robust membrane fit: vertices without a found
+    displacement, NaN rows of `found`, are interpolated); `fixed` vertices are held in place by a weight no
+    Huber step lowers."""
     n = len(mesh.vertices)
     edges = mesh.edges_unique
     adjacency = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
     adjacency = (adjacency + adjacency.T).tocsr()
     laplacian = sparse.diags(np.asarray(adjacency.sum(1)).ravel()) - adjacency
     fixed = np.zeros(n, bool) if fixed is None else fixed
-    has = np.isfinite(found) & ~fixed
-    target = np.where(has, found, 0.0)
+    has = np.isfinite(found).all(1) & ~fixed
+    target = np.where(has[:, None], found, 0.0)
     weight = has.astype(float)
-    d = target
+    u = target
     for _ in range(rounds):
         A = sparse.diags(weight + FIXED_WEIGHT * fixed + 1e-6) + cfg.smoothness * laplacian
-        d = spsolve(A.tocsc(), weight * target)
-        residual = np.abs(d - target)
+        u = spsolve(A.tocsc(), weight[:, None] * target)
+        residual = np.linalg.norm(u - target, axis=1)
         weight = np.where(has, np.minimum(1.0, cfg.robust_m / np.maximum(residual, 1e-12)), 0.0)
-    return d
+    return u
+
+
+def silhouette_anchors(before: np.ndarray, depth: np.ndarray, views: Views,
+                       radius_px: float) -> np.ndarray:
+    """Vertices to hold on the hull so that the surface keeps every view's silhouette.
+
+    Each pixel on a mask's outline sees a ray that touches the object. Hull vertices projecting within
+    `radius_px` of it lie along that ray (on the hull's surface there); the one that moved least
+    (smallest `depth`) is held. A roof over a flat top lies on the same ray as the top's edge, which
+    moved least, so the roof stays free."""
+    held = np.zeros(len(before), dtype=bool)
+    for i in range(len(views)):
+        T_cam = inv_T(views.T_turntable_cam[i])
+        cam = transform_points(T_cam, before)
+        uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
+        dist = signed_distance_px(views.masks[i])
+        px = np.clip(np.rint(uv).astype(int), 0, [views.width - 1, views.height - 1])
+        k = np.flatnonzero(np.abs(dist[px[:, 1], px[:, 0]]) <= radius_px + 0.5)
+        outline = np.argwhere((dist > 0) & (dist <= 0.5))[:, ::-1].astype(float)
+        if not len(k) or not len(outline):
+            continue
+        _, near = cKDTree(uv[k]).query(outline, k=min(64, len(k)), distance_upper_bound=radius_px)
+        near = near.reshape(len(outline), -1)
+        cost = np.where(near < len(k), depth[k][np.minimum(near, len(k) - 1)], np.inf)
+        best = cost.argmin(1)
+        hit = np.isfinite(cost[np.arange(len(outline)), best])
+        held[k[near[np.arange(len(outline)), best][hit]]] = True
+    return held
 
 
 def _visibility(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
