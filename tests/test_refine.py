@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from n2d_reconstruct.refine import RefineConfig, pick_views
+from n2d_reconstruct.data import Views
+from n2d_reconstruct.refine import RefineConfig, pick_views, silhouette_anchors
 
 
 def _ring(views: int, elevation_deg: float = 45.0, distance_m: float = 0.5) -> np.ndarray:
@@ -55,3 +56,20 @@ def test_a_vertex_seen_by_too_few_views_is_not_usable():
     visible[:, np.argsort(-cos[0])[3:]] = False
     _, ok = pick_views(np.zeros((1, 3)), eyes, cos, visible, cfg)
     assert not ok.any()
+
+
+def test_silhouette_anchors_hold_the_least_moved_vertex_on_an_outline_ray():
+    """One camera at the origin looking down +Z; the mask is a rectangle. Three vertices lie on the ray through
+    an outline pixel (a roof over an edge, and the edge itself), one on the ray of an inner pixel."""
+    K = np.array([[100.0, 0.0, 32.0], [0.0, 100.0, 24.0], [0.0, 0.0, 1.0]])
+    mask = np.zeros((48, 64), bool)
+    mask[10:40, 20:50] = True
+    views = Views(np.zeros((1, 48, 64, 3), np.uint8), mask[None], K, np.eye(4)[None], ["0000.png"])
+    ray = np.array([(20 - 32) / 100.0, (25 - 24) / 100.0, 1.0])  # pixel (20, 25): on the mask's left outline
+    inner = np.array([(35 - 32) / 100.0, (25 - 24) / 100.0, 1.0])
+    vertices = np.stack([0.40 * ray, 0.45 * ray, 0.50 * ray, 0.5 * inner])
+    depth = np.array([0.004, 0.0005, 0.002, 0.0])  # the edge (second) moved least; the inner vertex is no rim
+    held = silhouette_anchors(vertices, depth, views, radius_px=1.0)
+    assert held.tolist() == [False, True, False, False]
+    # nothing is held where no vertex lies near an outline pixel's ray
+    assert not silhouette_anchors(vertices[3:], depth[3:], views, radius_px=1.0).any()
