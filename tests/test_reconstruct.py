@@ -49,11 +49,12 @@ def model(session, tmp_path_factory):
 def test_fast_path_is_metric_and_close_to_the_ground_truth(model):
     out, report = model
     g = report["geometry"]
-    # 36 views of 320x240, a pixel is ~1.6 mm on the object (measured: Chamfer 1.4 mm, 0.8 % of the diameter)
-    assert g["chamfer_pct_diameter"] < 1.2, g
-    assert g["fscore"] > 0.35, g
+    # 36 views of 320x240, a pixel is ~1.6 mm on the object (measured: Chamfer 0.81 mm, 0.46 % of the diameter,
+    # F-score 0.67, size -0.0 / -0.6 / -0.3 mm)
+    assert g["chamfer_pct_diameter"] < 0.8, g
+    assert g["fscore"] > 0.5, g
     size = np.array(report["model"]["size_mm"])
-    assert np.all(np.abs(size - BOX_MM) < [5, 5, 15]), size  # what is left of the hull's roof over the top
+    assert np.all(np.abs(size - BOX_MM) < 3), size
     assert report["refine"]["moved"] > report["refine"]["vertices"] / 3, report["refine"]
     assert report["model"]["watertight"]
     held = report["heldout"]
@@ -128,6 +129,8 @@ def test_bad_sessions_are_refused_and_nothing_is_written(session, tmp_path):
 
 def test_cancel_keeps_the_partial_and_a_rerun_finishes(session, tmp_path):
     out = tmp_path / "model"
+    cfg = _config()
+    cfg.refine.min_faces = 0  # refine the 5000-face mesh itself: faster
     cancel = threading.Event()
     stages = []
 
@@ -137,9 +140,9 @@ def test_cancel_keeps_the_partial_and_a_rerun_finishes(session, tmp_path):
             cancel.set()
 
     with pytest.raises(Cancelled):
-        reconstruct(session[0], out, _config(), progress=progress, cancel=cancel)
+        reconstruct(session[0], out, cfg, progress=progress, cancel=cancel)
     assert not out.exists() and read_manifest(out.with_name("model.partial"))["complete"] is False
-    report = reconstruct(session[0], out, _config())
+    report = reconstruct(session[0], out, cfg)
     assert read_manifest(out)["complete"] and report["model"]["watertight"]
     assert not out.with_name("model.partial").exists()
 
@@ -154,8 +157,9 @@ def test_cli_reconstruct(session, tmp_path, capsys):
     assert read_manifest(out)["extra"]["object"] == "box"
     assert cli(args) == 2  # exists
     assert "already exists" in capsys.readouterr().err
-    # the visual hull alone: no refinement, and the hull is larger than the refined surface (measured on this
-    # coarse 2000-face mesh: diameter 181.9 vs 176.7 mm)
+    # the visual hull alone: no refinement, and the hull is larger than the refined surface and further from the
+    # truth, also at 2000 faces, since the refinement works on a finer mesh (measured: diameter 181.9 vs 176.4 mm,
+    # Chamfer 1.17 vs 0.60 mm)
     hull = tmp_path / "hull"
     assert cli(args[:2] + [str(hull)] + args[3:] + ["--set", "refine.enabled=false"]) == 0
     report = json.loads((hull / "report.json").read_text())
@@ -163,6 +167,8 @@ def test_cli_reconstruct(session, tmp_path, capsys):
     refined = json.loads((out / "report.json").read_text())
     assert refined["refine"]["silhouette_anchors"] > 0, refined["refine"]
     assert report["model"]["diameter_mm"] > refined["model"]["diameter_mm"] + 3, (report["model"], refined["model"])
+    assert refined["geometry"]["chamfer_mm"] < report["geometry"]["chamfer_mm"] - 0.3, (refined, report)
+    assert refined["model"]["faces"] <= 2000
     assert cli(["reconstruct", str(tmp_path / "nowhere"), str(tmp_path / "m2")]) == 2
     assert "hint:" in capsys.readouterr().err
 

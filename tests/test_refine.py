@@ -1,9 +1,12 @@
-"""Choice of the views the fast path's photo-consistency search compares per vertex."""
+"""The fast path's photo-consistency refinement: the views compared per vertex, the silhouette anchors and the
+membrane that turns found depths into vertex displacements."""
 
 import numpy as np
+import pytest
+import trimesh
 
 from n2d_reconstruct.data import Views
-from n2d_reconstruct.refine import RefineConfig, pick_views, silhouette_anchors
+from n2d_reconstruct.refine import RefineConfig, pick_views, silhouette_anchors, smooth_displacements
 
 
 def _ring(views: int, elevation_deg: float = 45.0, distance_m: float = 0.5) -> np.ndarray:
@@ -73,3 +76,29 @@ def test_silhouette_anchors_hold_the_least_moved_vertex_on_an_outline_ray():
     assert held.tolist() == [False, True, False, False]
     # nothing is held where no vertex lies near an outline pixel's ray
     assert not silhouette_anchors(vertices[3:], depth[3:], views, radius_px=1.0).any()
+
+
+def _ridge_on_a_plane() -> tuple[trimesh.Trimesh, np.ndarray]:
+    """A 20 x 20 mm grid, 1 mm apart, flat but for a ridge 4 mm high along x (a hull's roof crest left over a
+    plain top); and found displacements: zero on the flat part, none (NaN) on the ridge."""
+    xs = np.arange(-10, 11) * 0.001
+    x, y = np.meshgrid(xs, xs, indexing="ij")
+    z = np.maximum(0.0, 0.004 - 2 * np.abs(y))
+    idx = np.arange(x.size).reshape(x.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    mesh = trimesh.Trimesh(np.stack([x.ravel(), y.ravel(), z.ravel()], 1), faces, process=False)
+    found = np.where((z.ravel() == 0)[:, None], 0.0, np.nan) * np.ones((1, 3))
+    return mesh, found
+
+
+def test_the_bending_term_brings_down_a_crest_where_nothing_was_found():
+    mesh, found = _ridge_on_a_plane()
+    kept = mesh.vertices + smooth_displacements(mesh, found, RefineConfig(flatten=0.0))
+    assert kept[:, 2].max() == pytest.approx(0.004, abs=1e-6)  # interpolated displacements keep the hull's crest
+    flattened = mesh.vertices + smooth_displacements(mesh, found, RefineConfig())
+    assert flattened[:, 2].max() < 0.5 * 0.004
+    flat = np.isfinite(found).all(1)
+    assert np.abs(flattened[flat, 2]).max() < 1e-5  # the found surface stays where it was found
+    with pytest.raises(ValueError, match="flatten"):
+        RefineConfig(flatten=-1.0)

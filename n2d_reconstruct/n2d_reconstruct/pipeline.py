@@ -120,17 +120,27 @@ def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: Pro
     return (lambda p: np.maximum(field.sdf(p), plate - p[:, 2])), field
 
 
+def _meshing(cfg: ReconstructConfig) -> MeshConfig:
+    """The mesh settings of extraction: the fast path refines a mesh of at least `refine.min_faces` faces."""
+    if cfg.method != "fast" or not cfg.refine.enabled or not cfg.mesh.target_faces:
+        return cfg.mesh
+    return replace(cfg.mesh, target_faces=max(cfg.mesh.target_faces, cfg.refine.min_faces))
+
+
 def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     if not cfg.refine.enabled:
         return mesh, None
     passes = []
+    fine = replace(_meshing(cfg), smooth_iterations=cfg.refine.smooth_iterations)
     for i in range(cfg.refine.passes):
         def sub(p: Progress, i=i) -> None:
             progress(replace(p, fraction=(i + p.fraction) / cfg.refine.passes))
 
         mesh, stats = refine_surface(mesh, views, cfg.refine, sub, fixed=_on_plate(mesh, cfg))
-        mesh = clean(mesh, replace(cfg.mesh, smooth_iterations=cfg.refine.smooth_iterations))
+        mesh = clean(mesh, fine)
         passes.append(stats)
+    if cfg.mesh.target_faces and len(mesh.faces) > cfg.mesh.target_faces:
+        mesh = clean(mesh, replace(cfg.mesh, smooth_iterations=0))
     return mesh, passes[-1] | {"passes": passes}
 
 
@@ -165,7 +175,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
     data = phases.run("load", _load, session_dir, cfg)  # bad input fails before anything is written
     with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
         sdf, neus = phases.run("geometry", _geometry, data, cfg, writer.path, cancel)
-        mesh = phases.run("mesh", extract_mesh, sdf, search_box(data.plate_radius_m, cfg.hull), cfg.mesh)
+        mesh = phases.run("mesh", extract_mesh, sdf, search_box(data.plate_radius_m, cfg.hull), _meshing(cfg))
         refined = None
         if cfg.method == "fast":
             mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
