@@ -121,7 +121,8 @@ def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: Pro
 
 
 def _meshing(cfg: ReconstructConfig) -> MeshConfig:
-    """The mesh settings of extraction: the fast path refines a mesh of at least `refine.min_faces` faces."""
+    """The mesh settings of extraction: the fast path keeps up to `refine.min_faces` faces (or the user's larger
+    `mesh.target_faces`) for the refinement, which decimates to `mesh.target_faces` when it is done."""
     if cfg.method != "fast" or not cfg.refine.enabled or not cfg.mesh.target_faces:
         return cfg.mesh
     return replace(cfg.mesh, target_faces=max(cfg.mesh.target_faces, cfg.refine.min_faces))
