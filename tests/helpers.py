@@ -5,6 +5,8 @@ import time
 
 import cv2
 
+from n2d_common.ros import send_goal
+
 
 def wait_future(future, timeout_s: float = 30.0, poll_s: float = 0.01):
     """The result of an rclpy future that a background executor completes; fails the test after `timeout_s`."""
@@ -28,7 +30,7 @@ def send_and_cancel(client, request, when, timeout_s: float = 300.0):
             seen.append(message.feedback)
             reached.set()
 
-    goal = wait_future(client.send_goal_async(request, feedback_callback=on_feedback), 60)
+    goal = send_goal(client, request, feedback_callback=on_feedback)
     assert goal.accepted
     assert reached.wait(timeout_s), "no matching feedback"
     wait_future(goal.cancel_goal_async(), 60)

@@ -11,7 +11,7 @@ from std_srvs.srv import SetBool
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_capture.session import read_session
-from n2d_common.ros import SafeActionClient, background_node
+from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Capture
 
 VIEWS = 12
@@ -34,7 +34,7 @@ def test_capture_action_writes_a_complete_session(tmp_path, ros_domain):
                 feedback = []
                 request = Capture.Goal(session_dir=session, views=VIEWS, empty_plate=empty,
                                        config_yaml="sweep: {frame_timeout_s: 60}")
-                goal = wait_future(client.send_goal_async(request, feedback_callback=feedback.append), 30)
+                goal = send_goal(client, request, feedback_callback=feedback.append)
                 assert goal.accepted
                 result = wait_future(goal.get_result_async(), 800)
                 assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, "\n".join(logs[-40:]))

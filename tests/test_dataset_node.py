@@ -10,7 +10,7 @@ from helpers import send_and_cancel, wait_future
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_common.contracts import read_manifest
-from n2d_common.ros import SafeActionClient, background_node
+from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import GenerateDataset
 from n2d_sim.objects import sample_object_dir
 
@@ -37,8 +37,7 @@ def test_generate_dataset_action(tmp_path, ros_domain):
 
             feedback = []
             request.resume = True
-            goal = wait_future(client.send_goal_async(request, feedback_callback=lambda f: feedback.append(f.feedback)),
-                               60)
+            goal = send_goal(client, request, feedback_callback=lambda f: feedback.append(f.feedback))
             result = wait_future(goal.get_result_async(), 300)
             assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, logs[-20:])
             summary = json.loads(result.result.message)
@@ -50,7 +49,7 @@ def test_generate_dataset_action(tmp_path, ros_domain):
             # bad input: aborted with the reason, nothing written
             bad = GenerateDataset.Goal(model_dirs=[str(tmp_path / "nowhere")], dataset_dir=str(tmp_path / "ds2"),
                                        frames=1)
-            goal = wait_future(client.send_goal_async(bad), 60)
+            goal = send_goal(client, bad)
             result = wait_future(goal.get_result_async(), 60)
             assert result.status == GoalStatus.STATUS_ABORTED and "nowhere" in result.result.message
             assert not (tmp_path / "ds2").exists()

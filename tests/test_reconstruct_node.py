@@ -10,7 +10,7 @@ from helpers import send_and_cancel, wait_future
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_common.contracts import read_manifest
-from n2d_common.ros import SafeActionClient, background_node
+from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Reconstruct
 from n2d_sim.session import render_session, small_world
 
@@ -38,9 +38,9 @@ def test_reconstruct_action(tmp_path, ros_domain):
 
             feedback = []
             model = tmp_path / "model"
-            goal = wait_future(client.send_goal_async(Reconstruct.Goal(session_dir=str(session), model_dir=str(model),
-                                                                 method="fast", config_yaml=SMALL),
-                                                feedback_callback=lambda f: feedback.append(f.feedback)), 60)
+            goal = send_goal(client, Reconstruct.Goal(session_dir=str(session), model_dir=str(model),
+                                                      method="fast", config_yaml=SMALL),
+                             feedback_callback=lambda f: feedback.append(f.feedback))
             result = wait_future(goal.get_result_async(), 300)
             assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, logs[-20:])
             report = json.loads(result.result.report_json)
@@ -51,8 +51,8 @@ def test_reconstruct_action(tmp_path, ros_domain):
             assert all(a.progress <= b.progress + 1e-6 for a, b in zip(feedback, feedback[1:]))
 
             # bad input: aborted with the reason
-            goal = wait_future(client.send_goal_async(Reconstruct.Goal(session_dir=str(tmp_path / "nowhere"),
-                                                                 model_dir=str(tmp_path / "m3"))), 60)
+            goal = send_goal(client, Reconstruct.Goal(session_dir=str(tmp_path / "nowhere"),
+                                                      model_dir=str(tmp_path / "m3")))
             result = wait_future(goal.get_result_async(), 60)
             assert result.status == GoalStatus.STATUS_ABORTED and "nowhere" in result.result.message
             assert not launch.dead()

@@ -12,7 +12,7 @@ from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d_common.config import load_config
 from n2d_common.contracts import open_stage
-from n2d_common.ros import SafeActionClient, background_node
+from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.generate import generate_dataset
 from n2d_interfaces.action import Train
@@ -37,7 +37,7 @@ def test_train_action(tmp_path, ros_domain):
             assert client.wait_for_server(timeout_sec=60), logs[-20:]
 
             # an incomplete goal is refused
-            refused = wait_future(client.send_goal_async(Train.Goal(dataset_dir=str(dataset))), 60)
+            refused = send_goal(client, Train.Goal(dataset_dir=str(dataset)))
             assert not refused.accepted
 
             # cancel at the first training step: the goal ends canceled, the checkpoint stays for a resume
@@ -52,8 +52,7 @@ def test_train_action(tmp_path, ros_domain):
             # resume: training continues after the saved step and ends in a complete model directory
             feedback = []
             request.resume = True
-            goal = wait_future(client.send_goal_async(request, feedback_callback=lambda f: feedback.append(f.feedback)),
-                               60)
+            goal = send_goal(client, request, feedback_callback=lambda f: feedback.append(f.feedback))
             assert goal.accepted
             result = wait_future(goal.get_result_async(), 180)
             assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, logs[-20:])
@@ -73,7 +72,7 @@ def test_train_action(tmp_path, ros_domain):
 
             # bad input: aborted with the reason, the node keeps serving
             bad = Train.Goal(dataset_dir=str(tmp_path / "nowhere"), model_dir=str(tmp_path / "m2"), preset="tiny")
-            goal = wait_future(client.send_goal_async(bad), 60)
+            goal = send_goal(client, bad)
             result = wait_future(goal.get_result_async(), 60)
             assert result.status == GoalStatus.STATUS_ABORTED and "nowhere" in result.result.message
             assert not (tmp_path / "m2").exists()

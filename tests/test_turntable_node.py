@@ -11,7 +11,7 @@ from sensor_msgs.msg import JointState
 
 from n2d.launch_description import LaunchSpec, NodeSpec
 from n2d.launcher import Launch
-from n2d_common.ros import SENSOR_QOS, SafeActionClient, background_node
+from n2d_common.ros import SENSOR_QOS, SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Rotate
 
 
@@ -39,8 +39,7 @@ def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
         assert client.wait_for_server(timeout_sec=30), logs
 
         feedback = []
-        goal = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=math.pi / 2),
-                                                  feedback_callback=feedback.append))
+        goal = send_goal(client, Rotate.Goal(angle_rad=math.pi / 2), feedback_callback=feedback.append)
         assert goal.accepted
         result = wait_future(goal.get_result_async())
         assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.success
@@ -50,9 +49,9 @@ def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
         assert {f.feedback.stage for f in feedback} <= {"moving", "settling"}
 
         # a long move, cancelled half way: the plate stops short of the goal
-        goal = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=4 * math.pi)))
+        goal = send_goal(client, Rotate.Goal(angle_rad=4 * math.pi))
         time.sleep(0.8)
-        busy = wait_future(client.send_goal_async(Rotate.Goal(angle_rad=0.0)))
+        busy = send_goal(client, Rotate.Goal(angle_rad=0.0))
         assert not busy.accepted  # one rotation at a time
         wait_future(goal.cancel_goal_async())
         result = wait_future(goal.get_result_async())

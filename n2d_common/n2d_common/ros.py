@@ -130,10 +130,15 @@ class JobActionServer:
         return CancelResponse.ACCEPT
 
     def _execute(self, goal_handle):
-        with self._busy:
+        if not self._busy.acquire(blocking=False):  # two goals accepted at once: never run a job twice
+            goal_handle.abort()
+            return self._type.Result(message="another job is running")
+        try:
             result = self._job(goal_handle.request, goal_handle.publish_feedback)
             end = {"succeeded": goal_handle.succeed, "cancelled": goal_handle.canceled}.get(self.state,
                                                                                            goal_handle.abort)
+        finally:
+            self._busy.release()
         end()
         return result
 
@@ -355,6 +360,31 @@ def wait_future(future, timeout_s: float, what: str):
     return future.result()
 
 
+def send_goal(client: ActionClient, goal, *, what: str = "action",
+              feedback_callback: Callable[[Any], None] | None = None, attempts: int = 3, answer_s: float = 10.0):
+    """Send `goal` on `client` (its node spinning in another thread); the server's answer, a ClientGoalHandle.
+
+    Fast DDS waits only 100 ms for a service's reply writer to match the client's reader; right after
+    discovery on a loaded machine it drops the goal response, and the server ("Failed to send goal
+    response") never runs that goal. So a goal without an answer in `answer_s` is sent again under a new
+    goal id, up to `attempts` times, and the first answer to come back is used. DeviceError when none does.
+    A slow answer is not a lost one (a request that arrives before discovery is re-sent at the next
+    heartbeat, seconds later), hence the long `answer_s`; and n2d's servers refuse or abort a goal while
+    another runs, so a late first answer never starts a job twice.
+    """
+    pending = []
+    for _ in range(attempts):
+        pending.append(client.send_goal_async(goal, feedback_callback=feedback_callback))
+        deadline = time.monotonic() + answer_s
+        while time.monotonic() < deadline:
+            for future in pending:
+                if future.done():
+                    return future.result()
+            time.sleep(0.01)
+    raise DeviceError(f"{what} goal: no answer from {client._action_name} within {attempts * answer_s:.0f} s",
+                      "is the node serving it running?")
+
+
 def call_action(client: ActionClient, goal, *, what: str, feedback: Callable[[Any], None] | None = None,
                 cancel: threading.Event | None = None, server_timeout_s: float = 30.0,
                 timeout_s: float | None = None):
@@ -368,7 +398,7 @@ def call_action(client: ActionClient, goal, *, what: str, feedback: Callable[[An
     if not client.wait_for_server(timeout_sec=server_timeout_s):
         raise DeviceError(f"{what}: the action {name} is not available", "start the node that serves it")
     on_feedback = (lambda msg: feedback(msg.feedback)) if feedback else None
-    handle = wait_future(client.send_goal_async(goal, feedback_callback=on_feedback), 10.0, f"{what} goal")
+    handle = send_goal(client, goal, what=what, feedback_callback=on_feedback)
     if not handle.accepted:
         raise N2DError(f"{what}: {name} refused the goal", "is it busy with another goal?")
     result_future = handle.get_result_async()

@@ -96,28 +96,31 @@ class TurntableNode(Node):
     def execute_rotate(self, goal_handle) -> Rotate.Result:
         goal = goal_handle.request
         result = Rotate.Result()
-        with self._busy:
-            self._cancel = threading.Event()
+        if not self._busy.acquire(blocking=False):  # two goals accepted at once: the second does not move
+            goal_handle.abort()
+            result.message = "another rotation is running"
+            return result
+        self._cancel = threading.Event()
+
+        def feedback(angle: float, fraction: float, stage: str, eta_s: float) -> None:
+            goal_handle.publish_feedback(Rotate.Feedback(angle_rad=angle, progress=fraction, stage=stage,
+                                                         eta_s=eta_s))
+
+        try:
             target = goal.angle_rad + (self.turntable.angle() if goal.relative else 0.0)
-
-            def feedback(angle: float, fraction: float, stage: str, eta_s: float) -> None:
-                goal_handle.publish_feedback(Rotate.Feedback(angle_rad=angle, progress=fraction, stage=stage,
-                                                             eta_s=eta_s))
-
-            try:
-                result.angle_rad = self.turntable.rotate_to(target, goal.velocity_rad_s or None, feedback,
-                                                            self._cancel)
-                result.success = True
-                goal_handle.succeed()
-            except Cancelled as exc:
-                result.message, result.angle_rad = str(exc), self.turntable.angle()
-                goal_handle.canceled()
-            except N2DError as exc:
-                result.message = str(exc)
-                self.get_logger().error(result.message)
-                goal_handle.abort()
-            finally:
-                self._cancel = None
+            result.angle_rad = self.turntable.rotate_to(target, goal.velocity_rad_s or None, feedback, self._cancel)
+            result.success = True
+            goal_handle.succeed()
+        except Cancelled as exc:
+            result.message, result.angle_rad = str(exc), self.turntable.angle()
+            goal_handle.canceled()
+        except N2DError as exc:
+            result.message = str(exc)
+            self.get_logger().error(result.message)
+            goal_handle.abort()
+        finally:
+            self._cancel = None
+            self._busy.release()
         return result
 
     def destroy_node(self) -> None:

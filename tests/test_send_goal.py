@@ -1,0 +1,75 @@
+"""n2d_common.ros.send_goal over real rclpy: a goal whose response never comes is sent again under a new id
+(Fast DDS drops a goal response sent before the server matched the client), and no answer at all is a
+DeviceError that names the action."""
+
+import threading
+
+import pytest
+import rclpy
+from action_msgs.msg import GoalStatus
+from helpers import wait_future
+from rclpy.action import ActionServer, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+
+from n2d_common.errors import DeviceError
+from n2d_common.ros import SafeActionClient, background_node, send_goal
+from n2d_interfaces.action import Rotate
+
+
+class _Server:
+    """A Rotate server in this process whose goal callback holds the first `silent` goals unanswered."""
+
+    def __init__(self, silent: int):
+        self.goals, self.silent, self.release = 0, silent, threading.Event()
+        self.node = rclpy.create_node("test_send_goal_server")
+        self.server = ActionServer(self.node, Rotate, "/test/rotate", execute_callback=self._execute,
+                                   goal_callback=self._on_goal, callback_group=ReentrantCallbackGroup())
+        self.executor = MultiThreadedExecutor(num_threads=4)
+        self.executor.add_node(self.node)
+        threading.Thread(target=self.executor.spin, daemon=True).start()
+
+    def _on_goal(self, _goal):
+        self.goals += 1
+        if self.goals <= self.silent:
+            self.release.wait()
+        return GoalResponse.ACCEPT
+
+    def _execute(self, goal_handle):
+        goal_handle.succeed()
+        return Rotate.Result(success=True, angle_rad=goal_handle.request.angle_rad)
+
+    def close(self) -> None:
+        self.release.set()
+        self.executor.shutdown(timeout_sec=5.0)
+        self.server.destroy()
+        self.node.destroy_node()
+
+
+@pytest.mark.timeout(60)
+def test_a_goal_without_answer_is_sent_again(ros_domain):
+    with background_node("test_send_goal_client", ros_domain) as node:
+        server = _Server(silent=1)
+        try:
+            client = SafeActionClient(node, Rotate, "/test/rotate")
+            assert client.wait_for_server(timeout_sec=30)
+            goal = send_goal(client, Rotate.Goal(angle_rad=0.5), answer_s=1.0)
+            assert goal.accepted and server.goals == 2
+            result = wait_future(goal.get_result_async())
+            assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.angle_rad == pytest.approx(0.5)
+        finally:
+            server.close()
+
+
+@pytest.mark.timeout(60)
+def test_no_answer_at_all_is_a_device_error(ros_domain):
+    with background_node("test_send_goal_client", ros_domain) as node:
+        server = _Server(silent=10)
+        try:
+            client = SafeActionClient(node, Rotate, "/test/rotate")
+            assert client.wait_for_server(timeout_sec=30)
+            with pytest.raises(DeviceError, match="turntable goal: no answer from /test/rotate within 2 s"):
+                send_goal(client, Rotate.Goal(angle_rad=0.5), what="turntable", attempts=4, answer_s=0.5)
+            assert server.goals == 4
+        finally:
+            server.close()
