@@ -56,6 +56,8 @@ def test_fast_path_is_metric_and_close_to_the_ground_truth(model):
     size = np.array(report["model"]["size_mm"])
     assert np.all(np.abs(size - BOX_MM) < 3), size
     assert report["refine"]["moved"] > report["refine"]["vertices"] / 3, report["refine"]
+    # the refined surface keeps to the silhouettes: little of it stands out of the hull by more than the slack
+    assert report["hull"]["slack_mm"] > 0 and report["hull"]["moved_fraction"] < 0.2, report["hull"]
     assert report["model"]["watertight"]
     held = report["heldout"]
     assert held["heldout_views"] == 4 and held["mesh_psnr_db"] > 12  # measured 14.0 dB
@@ -63,7 +65,8 @@ def test_fast_path_is_metric_and_close_to_the_ground_truth(model):
     # noisy photos, and the photos themselves sit at the sensor noise (sigma ~3.7 DN: ~37 dB)
     assert held["clean_mesh_psnr_db"] > held["mesh_psnr_db"], held
     assert 33 < held["clean_photo_psnr_db"] < 42 and held["clean_photo_ssim"] < 1, held
-    assert set(report["timings_s"]) >= {"load", "geometry", "mesh", "denoise", "texture", "export", "report", "total"}
+    assert set(report["timings_s"]) >= {"load", "geometry", "mesh", "hull", "denoise", "texture", "export", "report",
+                                      "total"}
     assert json.loads((out / "report.json").read_text()) == report
 
 

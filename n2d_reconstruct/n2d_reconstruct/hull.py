@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+import trimesh
 
 from n2d_reconstruct.data import Views
 
@@ -33,6 +34,10 @@ class HullConfig:
     """Height above the plate surface where the object starts; everything below is cut away, metres."""
     search_height_m: float = 0.5
     """Height above the plate searched for the object, metres."""
+    slack_px: float = 0.25
+    """The mesh is pulled back where it stands further than this outside the hull, in pixels at the object's
+    distance (a binary mask places the outline to about half a pixel, so the hull cuts that far into flat faces);
+    negative: never."""
 
     def __post_init__(self):
         if self.forgive_views < 0:
@@ -54,6 +59,8 @@ class VisualHull:
         self.t = torch.as_tensor(T_cam_turntable[:, :3, 3], dtype=torch.float64)
         self.size = torch.tensor([views.width, views.height], dtype=torch.float64)
         self.dist = torch.as_tensor(np.stack([signed_distance_px(m) for m in views.masks]))[:, None]
+        self.pixel_m = float(np.mean(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1)) / views.K[0, 0])
+        """The size of a pixel at the turntable centre, averaged over the views, metres."""
 
     def __call__(self, points: np.ndarray, chunk: int = 1 << 17) -> np.ndarray:
         """N x 3 turntable-frame points -> N signed distances, metres (negative inside)."""
@@ -77,6 +84,26 @@ class VisualHull:
         inside = metric.kthvalue(k + 1, dim=0).values if k else metric.min(dim=0).values
         above = p[:, 2] - self.cfg.plate_clearance_m
         return -torch.minimum(inside, above)
+
+
+def pull_inside(mesh: trimesh.Trimesh, hull: VisualHull, slack_m: float,
+                iterations: int = 6) -> tuple[trimesh.Trimesh, dict]:
+    """`mesh` with every vertex that stands more than `slack_m` outside `hull` moved back to that distance
+    along its normal, and what moved (fraction of the vertices, largest move in mm).
+
+    The object lies inside every silhouette cone, so a surface outside the hull is an error: NeuS rounds
+    corners out and leaves broad bumps where no texture pins the depth. The hull's field is a distance to
+    first order only, hence a few passes.
+    """
+    vertices = mesh.vertices.copy()
+    normals = mesh.vertex_normals
+    for _ in range(iterations):
+        over = np.maximum(hull(vertices) - slack_m, 0.0)
+        vertices -= normals * over[:, None]
+    moved = np.linalg.norm(vertices - mesh.vertices, axis=1)
+    stats = {"moved_fraction": round(float(np.mean(moved > 0)), 4),
+             "max_move_mm": round(float(moved.max(initial=0.0)) * 1000, 3), "slack_mm": round(slack_m * 1000, 3)}
+    return trimesh.Trimesh(vertices, mesh.faces, process=False), stats
 
 
 def signed_distance_px(mask: np.ndarray) -> np.ndarray:

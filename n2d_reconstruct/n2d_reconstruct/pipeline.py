@@ -2,9 +2,10 @@
 
 Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
 from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
-denoise (bilateral normal filtering: ripples flattened, edges kept) -> texture (xatlas; baked from
-the photos, or from the NeuS colour field) -> export (object frame, OBJ/GLB, models_info.json) ->
-report (held-out metrics, geometry against a ground truth, preview).
+hull (what stands outside the visual hull is pulled back) -> denoise (bilateral normal filtering:
+ripples flattened, edges kept) -> texture (xatlas; baked from the photos, or from the NeuS colour
+field) -> export (object frame, OBJ/GLB, models_info.json) -> report (held-out metrics, geometry
+against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
 keeps its checkpoint there and the next run with the same config resumes from it.
 """
@@ -27,17 +28,17 @@ from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.denoise import DenoiseConfig, denoise
 from n2d_reconstruct.export import object_frame, write_model
-from n2d_reconstruct.hull import HullConfig, VisualHull, search_box
+from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside, search_box
 from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
 from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_views, unwrap
 
-PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "denoise": 0.1, "texture": 0.25,
-                   "export": 0.05, "report": 0.15},
-          "neus": {"load": 0.01, "geometry": 0.84, "mesh": 0.03, "denoise": 0.01, "texture": 0.05, "export": 0.01,
-                   "report": 0.05}}
+PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.09,
+                   "texture": 0.25, "export": 0.05, "report": 0.15},
+          "neus": {"load": 0.01, "geometry": 0.84, "mesh": 0.03, "hull": 0.005, "denoise": 0.005, "texture": 0.05,
+                   "export": 0.01, "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -108,16 +109,16 @@ def _load(session_dir, cfg: ReconstructConfig, progress: ProgressFn):
 
 
 def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: ProgressFn):
-    """The SDF to mesh and the NeuS field (None for the fast path)."""
+    """The visual hull, the SDF to mesh (the hull on the fast path) and the NeuS field (None on the fast path)."""
     hull = VisualHull(data.train, cfg.hull)
     if cfg.method == "fast":
-        return hull, None
+        return hull, hull, None
     box = locate(hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh.locate_voxel_m)
     aabb = box + [[-AABB_MARGIN_M] * 3, [AABB_MARGIN_M] * 3]
     aabb[0, 2] = max(aabb[0, 2], cfg.hull.plate_clearance_m - cfg.mesh.voxel_m)
     field = train_neus(data.train, aabb, cfg.neus, workdir=workdir, init_sdf=hull, progress=progress, cancel=cancel)
     plate = cfg.hull.plate_clearance_m
-    return (lambda p: np.maximum(field.sdf(p), plate - p[:, 2])), field
+    return hull, (lambda p: np.maximum(field.sdf(p), plate - p[:, 2])), field
 
 
 def _meshing(cfg: ReconstructConfig) -> MeshConfig:
@@ -143,6 +144,12 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     if cfg.mesh.target_faces and len(mesh.faces) > cfg.mesh.target_faces:
         mesh = clean(mesh, replace(cfg.mesh, smooth_iterations=0))
     return mesh, passes[-1] | {"passes": passes}
+
+
+def _pull_inside(mesh, hull: VisualHull, cfg: HullConfig, progress: ProgressFn):
+    if cfg.slack_px < 0:
+        return mesh, None
+    return pull_inside(mesh, hull, cfg.slack_px * hull.pixel_m)
 
 
 def _on_plate(mesh, cfg: ReconstructConfig) -> np.ndarray:
@@ -175,11 +182,12 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
     session_dir = Path(session_dir)
     data = phases.run("load", _load, session_dir, cfg)  # bad input fails before anything is written
     with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
-        sdf, neus = phases.run("geometry", _geometry, data, cfg, writer.path, cancel)
+        hull, sdf, neus = phases.run("geometry", _geometry, data, cfg, writer.path, cancel)
         mesh = phases.run("mesh", extract_mesh, sdf, search_box(data.plate_radius_m, cfg.hull), _meshing(cfg))
         refined = None
         if cfg.method == "fast":
             mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
+        mesh, pulled = phases.run("hull", _pull_inside, mesh, hull, cfg.hull)
         mesh = phases.run("denoise", denoise, mesh, cfg.denoise, _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
@@ -187,6 +195,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
                                                                  cfg.object_name))
         report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
         report["refine"] = refined
+        report["hull"] = pulled
         report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
         report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,
                            "diameter_mm": info["diameter"],

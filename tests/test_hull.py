@@ -1,0 +1,58 @@
+"""The visual hull of exact masks, and pulling a mesh back inside it: a ball seen by a ring of cameras."""
+
+import numpy as np
+import trimesh
+
+from n2d_reconstruct.data import Views
+from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside
+
+RADIUS_M = 0.03
+CENTRE = np.array([0.0, 0.0, 0.05])
+K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
+
+
+def _look_at(eye: np.ndarray) -> np.ndarray:
+    """T_turntable_cam of an OpenCV camera (z forward, y down) at `eye` looking at the ball's centre."""
+    z = (CENTRE - eye) / np.linalg.norm(CENTRE - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    T[:3, 3] = eye
+    return T
+
+
+def _ball_views(n: int = 12) -> Views:
+    """`n` cameras on a ring 0.3 m away at 30 degrees elevation; each mask is the ball's exact outline (a disc)."""
+    azimuth = np.arange(n) * 2 * np.pi / n
+    eyes = CENTRE + 0.3 * np.stack([np.cos(azimuth) * np.cos(np.pi / 6), np.sin(azimuth) * np.cos(np.pi / 6),
+                                    np.full(n, np.sin(np.pi / 6))], 1)
+    radius_px = K[0, 0] * np.tan(np.arcsin(RADIUS_M / 0.3))
+    v, u = np.mgrid[0:120, 0:160]
+    disc = (u - K[0, 2]) ** 2 + (v - K[1, 2]) ** 2 <= radius_px ** 2
+    return Views(np.zeros((n, 120, 160, 3), np.uint8), np.repeat(disc[None], n, 0), K,
+                 np.stack([_look_at(e) for e in eyes]), [f"{i:04d}.png" for i in range(n)])
+
+
+def test_a_bump_outside_the_hull_is_pulled_back_and_the_true_surface_barely_moves():
+    views = _ball_views()
+    hull = VisualHull(views, HullConfig())
+    assert hull.pixel_m == np.linalg.norm(views.T_turntable_cam[0, :3, 3]) / 300.0  # at the turntable centre
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_M)
+    ball.apply_translation(CENTRE)
+    # the true surface is inside the hull, to a fraction of the masks' pixel
+    assert hull(ball.vertices).max() < 0.5 * hull.pixel_m
+
+    bumped = ball.vertices.copy()
+    # a 4 mm bump on the side: outside the hull (the cameras' rims cover the sides, not the top above 30 degrees)
+    side = bumped[:, 0] > CENTRE[0] + 0.9 * RADIUS_M
+    bumped[side] += 0.004 * ball.vertex_normals[side]
+    mesh = trimesh.Trimesh(bumped, ball.faces, process=False)
+    slack = 0.25 * hull.pixel_m
+    pulled, stats = pull_inside(mesh, hull, slack)
+    assert hull(pulled.vertices[side]).max() < slack + 0.05 * hull.pixel_m  # back to the slack, to a few passes
+    assert np.linalg.norm(pulled.vertices - CENTRE, axis=1)[side].max() < RADIUS_M + 0.0015  # the hull's own gaps
+    # the rest moves only where the binary masks' hull cuts into the true ball by more than the slack
+    assert np.linalg.norm(pulled.vertices - ball.vertices, axis=1)[~side].max() < 0.1 * hull.pixel_m
+    assert stats["moved_fraction"] >= side.mean() and 3.0 < stats["max_move_mm"] < 5.0
+    assert len(pulled.faces) == len(ball.faces) and pulled.is_watertight
