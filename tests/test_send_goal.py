@@ -32,7 +32,8 @@ class _Server:
     def _on_goal(self, _goal):
         self.goals += 1
         if self.goals <= self.silent:
-            self.release.wait()
+            self.release.wait()  # released only on close: refuse, so no goal is accepted while the server goes
+            return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
     def _execute(self, goal_handle):
