@@ -1,6 +1,7 @@
 """The visual hull of exact masks, and pulling a mesh back inside it: a ball seen by a ring of cameras."""
 
 import numpy as np
+import pytest
 import trimesh
 
 from n2d_reconstruct.data import Views
@@ -56,3 +57,8 @@ def test_a_bump_outside_the_hull_is_pulled_back_and_the_true_surface_barely_move
     assert np.linalg.norm(pulled.vertices - ball.vertices, axis=1)[~side].max() < 0.1 * hull.pixel_m
     assert stats["moved_fraction"] >= side.mean() and 3.0 < stats["max_move_mm"] < 5.0
     assert len(pulled.faces) == len(ball.faces) and pulled.is_watertight
+
+
+def test_a_slack_that_is_not_a_number_is_refused():
+    with pytest.raises(ValueError, match="slack_px must be a number"):
+        HullConfig(slack_px=float("nan"))

@@ -3,6 +3,7 @@
 DeviceError that names the action."""
 
 import threading
+from contextlib import contextmanager
 
 import pytest
 import rclpy
@@ -47,30 +48,31 @@ class _Server:
         self.node.destroy_node()
 
 
-@pytest.mark.timeout(60)
-def test_a_goal_without_answer_is_sent_again(ros_domain):
+@contextmanager
+def _client_and_server(ros_domain: int, silent: int):
+    """An action client in a background node and a _Server holding its first `silent` goals unanswered."""
     with background_node("test_send_goal_client", ros_domain) as node:
-        server = _Server(silent=1)
+        server = _Server(silent)
         try:
             client = SafeActionClient(node, Rotate, "/test/rotate")
             assert client.wait_for_server(timeout_sec=30)
-            goal = send_goal(client, Rotate.Goal(angle_rad=0.5), answer_s=1.0)
-            assert goal.accepted and server.goals == 2
-            result = wait_future(goal.get_result_async())
-            assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.angle_rad == pytest.approx(0.5)
+            yield client, server
         finally:
             server.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_goal_without_answer_is_sent_again(ros_domain):
+    with _client_and_server(ros_domain, silent=1) as (client, server):
+        goal = send_goal(client, Rotate.Goal(angle_rad=0.5), answer_s=1.0)
+        assert goal.accepted and server.goals == 2
+        result = wait_future(goal.get_result_async())
+        assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.angle_rad == pytest.approx(0.5)
 
 
 @pytest.mark.timeout(60)
 def test_no_answer_at_all_is_a_device_error(ros_domain):
-    with background_node("test_send_goal_client", ros_domain) as node:
-        server = _Server(silent=10)
-        try:
-            client = SafeActionClient(node, Rotate, "/test/rotate")
-            assert client.wait_for_server(timeout_sec=30)
-            with pytest.raises(DeviceError, match="turntable goal: no answer from /test/rotate within 2 s"):
-                send_goal(client, Rotate.Goal(angle_rad=0.5), what="turntable", attempts=4, answer_s=0.5)
-            assert server.goals == 4
-        finally:
-            server.close()
+    with _client_and_server(ros_domain, silent=10) as (client, server):
+        with pytest.raises(DeviceError, match="turntable goal: no answer from /test/rotate within 2 s"):
+            send_goal(client, Rotate.Goal(angle_rad=0.5), what="turntable", attempts=4, answer_s=0.5)
+        assert server.goals == 4

@@ -44,6 +44,8 @@ class HullConfig:
             raise ValueError("forgive_views must be >= 0")
         if self.search_height_m <= 0:
             raise ValueError("search_height_m must be > 0")
+        if not np.isfinite(self.slack_px):
+            raise ValueError("slack_px must be a number of pixels (negative: never pull the mesh back)")
 
 
 class VisualHull:
