@@ -4,6 +4,7 @@ import threading
 import time
 
 import cv2
+import numpy as np
 
 from n2d_common.ros import send_goal
 
@@ -44,3 +45,15 @@ def write_photos(folder, images, suffix):
         assert cv2.imwrite(str(folder / f"IMG_{i:04d}{suffix}"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
                            [cv2.IMWRITE_JPEG_QUALITY, 95])
     return folder
+
+
+def look_at(eye, target) -> np.ndarray:
+    """T_turntable_cam of an OpenCV camera (z forward, y down) at `eye` looking at `target` (Z up)."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
+    T[:3, 3] = eye
+    return T

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from helpers import look_at
 
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside
@@ -10,17 +11,6 @@ from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside
 RADIUS_M = 0.03
 CENTRE = np.array([0.0, 0.0, 0.05])
 K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
-
-
-def _look_at(eye: np.ndarray) -> np.ndarray:
-    """T_turntable_cam of an OpenCV camera (z forward, y down) at `eye` looking at the ball's centre."""
-    z = (CENTRE - eye) / np.linalg.norm(CENTRE - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    T[:3, 3] = eye
-    return T
 
 
 def _ball_views(n: int = 12) -> Views:
@@ -32,7 +22,7 @@ def _ball_views(n: int = 12) -> Views:
     v, u = np.mgrid[0:120, 0:160]
     disc = (u - K[0, 2]) ** 2 + (v - K[1, 2]) ** 2 <= radius_px ** 2
     return Views(np.zeros((n, 120, 160, 3), np.uint8), np.repeat(disc[None], n, 0), K,
-                 np.stack([_look_at(e) for e in eyes]), [f"{i:04d}.png" for i in range(n)])
+                 np.stack([look_at(e, CENTRE) for e in eyes]), [f"{i:04d}.png" for i in range(n)])
 
 
 def test_a_bump_outside_the_hull_is_pulled_back_and_the_true_surface_barely_moves():

@@ -206,6 +206,8 @@ def test_neus_method_trains_from_the_hull_and_resumes_after_a_cancel(session, tm
     assert report["geometry"]["chamfer_pct_diameter"] < 2.5, report["geometry"]
     assert report["heldout"]["field_psnr_db"] > 12 and report["heldout"]["mesh_psnr_db"] > 10
     assert read_manifest(out)["extra"]["method"] == "neus" and (out / "neus.pt").is_file()
+    assert list(report["timings_s"])[:6] == ["load", "geometry", "mesh", "fair", "hull", "denoise"]
+    assert 0 < report["fair"]["plain_fraction"] < 1 and report["refine"] is None
 
 
 def test_pinched_edges_and_holes_are_repaired():

@@ -2,10 +2,10 @@
 
 Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
 from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
-hull (what stands outside the visual hull is pulled back) -> denoise (bilateral normal filtering:
-ripples flattened, edges kept) -> texture (xatlas; baked from the photos, or from the NeuS colour
-field) -> export (object frame, OBJ/GLB, models_info.json) -> report (held-out metrics, geometry
-against a ground truth, preview).
+fair (`neus`: plain surfaces spanned by a membrane) -> hull (what stands outside the visual hull is
+pulled back) -> denoise (bilateral normal filtering: ripples flattened, edges kept) -> texture (xatlas;
+baked from the photos, or from the NeuS colour field) -> export (object frame, OBJ/GLB,
+models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
 keeps its checkpoint there and the next run with the same config resumes from it.
 """
@@ -28,6 +28,7 @@ from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.denoise import DenoiseConfig, denoise
 from n2d_reconstruct.export import object_frame, write_model
+from n2d_reconstruct.fair import FairConfig, fair_plain
 from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside, search_box
 from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
@@ -37,8 +38,8 @@ from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from
 
 PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.09,
                    "texture": 0.25, "export": 0.05, "report": 0.15},
-          "neus": {"load": 0.01, "geometry": 0.84, "mesh": 0.03, "hull": 0.005, "denoise": 0.005, "texture": 0.05,
-                   "export": 0.01, "report": 0.05}}
+          "neus": {"load": 0.01, "geometry": 0.83, "mesh": 0.03, "fair": 0.01, "hull": 0.005, "denoise": 0.005,
+                   "texture": 0.05, "export": 0.01, "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -66,6 +67,8 @@ class ReconstructConfig:
     """Marching cubes and clean-up."""
     refine: RefineConfig = field(default_factory=RefineConfig)
     """Photo-consistency refinement of the hull."""
+    fair: FairConfig = field(default_factory=FairConfig)
+    """The membrane over surfaces that show no texture (NeuS)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Feature-preserving denoising of the mesh (both methods)."""
     texture: TextureConfig = field(default_factory=TextureConfig)
@@ -184,9 +187,11 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
     with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
         hull, sdf, neus = phases.run("geometry", _geometry, data, cfg, writer.path, cancel)
         mesh = phases.run("mesh", extract_mesh, sdf, search_box(data.plate_radius_m, cfg.hull), _meshing(cfg))
-        refined = None
+        refined = faired = None
         if cfg.method == "fast":
             mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
+        else:
+            mesh, faired = phases.run("fair", fair_plain, mesh, data.train, cfg.fair, _on_plate(mesh, cfg))
         mesh, pulled = phases.run("hull", _pull_inside, mesh, hull, cfg.hull)
         mesh = phases.run("denoise", denoise, mesh, cfg.denoise, _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
@@ -195,6 +200,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
                                                                  cfg.object_name))
         report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
         report["refine"] = refined
+        report["fair"] = faired
         report["hull"] = pulled
         report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
         report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,

@@ -117,10 +117,10 @@ def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progr
     hold their neighbours, which no view may see either."""
     v = mesh.vertices
     n = mesh.vertex_normals
-    grey = torch.as_tensor(views.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[:, None]
+    grey = grey_images(views)
     pixel_m = float(np.median(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1))) / views.K[0, 0]
     step = cfg.step_px * pixel_m
-    cos, visible = _visibility(mesh, views, cfg, step)
+    cos, visible = visibility(mesh, views, cfg.min_cos, 2 * step + 0.001)
     order, usable = pick_views(v, views.T_turntable_cam[:, :3, 3], cos, visible, cfg)
     depths = np.arange(-cfg.outward_m, cfg.max_depth_m + 1e-12, step)
     found = np.full(len(v), np.nan)
@@ -208,12 +208,13 @@ def silhouette_anchors(before: np.ndarray, depth: np.ndarray, views: Views,
     return held
 
 
-def _visibility(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """V x N cosine between each vertex normal and the direction to each camera, and whether it is seen."""
+def visibility(mesh: trimesh.Trimesh, views: Views, min_cos: float,
+               tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """V x N cosine between each vertex normal and the direction to each camera, and whether it is seen: not
+    hidden (its depth within `tolerance_m` of the mesh's depth there) and no more oblique than `min_cos`."""
     v, n = mesh.vertices, mesh.vertex_normals
     cos = np.zeros((len(v), len(views)))
     visible = np.zeros((len(v), len(views)), dtype=bool)
-    tolerance = 2 * step + 0.001
     for i in range(len(views)):
         T_cam = inv_T(views.T_turntable_cam[i])
         depth = render_depth(v, mesh.faces, views.K, T_cam, views.width, views.height)
@@ -221,10 +222,10 @@ def _visibility(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, step: fl
         px = np.rint(cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]).astype(int)
         inside = (px >= 0).all(1) & (px[:, 0] < views.width) & (px[:, 1] < views.height)
         seen = np.zeros(len(v), dtype=bool)
-        seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - cam[inside, 2]) < tolerance
+        seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - cam[inside, 2]) < tolerance_m
         to_cam = views.T_turntable_cam[i][:3, 3] - v
         cos[:, i] = np.einsum("nc,nc->n", n, to_cam) / np.linalg.norm(to_cam, axis=1)
-        visible[:, i] = seen & (cos[:, i] > cfg.min_cos)
+        visible[:, i] = seen & (cos[:, i] > min_cos)
     return cos, visible
 
 
@@ -248,31 +249,41 @@ def pick_views(v: np.ndarray, eyes: np.ndarray, cos: np.ndarray, visible: np.nda
     return order, found
 
 
-def _tangents(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors spanning the plane perpendicular to each unit normal."""
+def tangent_patch(n: np.ndarray, size: int, spacing: float) -> np.ndarray:
+    """V x size^2 x 3 offsets of a square grid of samples `spacing` apart in the plane perpendicular to each unit
+    normal, centred on zero."""
     helper = np.where(np.abs(n[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
     t1 = np.cross(n, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    return t1, np.cross(n, t1)
+    t2 = np.cross(n, t1)
+    c = (np.arange(size) - (size - 1) / 2) * spacing
+    a, b = np.meshgrid(c, c, indexing="ij")
+    return a.reshape(1, -1, 1) * t1[:, None] + b.reshape(1, -1, 1) * t2[:, None]
+
+
+def grey_images(views: Views) -> torch.Tensor:
+    """N x 1 x H x W float grey values (0..255) of the views."""
+    return torch.as_tensor(views.rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[:, None]
+
+
+def sample_view(grey: torch.Tensor, views: Views, view: int, points: np.ndarray) -> np.ndarray:
+    """Grey values (bilinear) where N x 3 turntable-frame `points` project into view `view`."""
+    cam = transform_points(inv_T(views.T_turntable_cam[view]), points)
+    uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
+    grid = torch.as_tensor(2 * uv / [views.width - 1, views.height - 1] - 1, dtype=torch.float32).view(1, -1, 1, 2)
+    values = torch.nn.functional.grid_sample(grey[view:view + 1], grid, align_corners=True, padding_mode="border")
+    return values.view(-1).numpy()
 
 
 def _search(v, n, order, depths, spacing: float, views: Views, grey: torch.Tensor, cfg: RefineConfig) -> np.ndarray:
     """Best inward depth of each vertex (NaN where no depth is trustworthy); patch samples `spacing` apart."""
-    c = (np.arange(cfg.patch_size) - (cfg.patch_size - 1) / 2) * spacing
-    a, b = np.meshgrid(c, c, indexing="ij")
-    t1, t2 = _tangents(n)
-    patch = a.reshape(1, -1, 1) * t1[:, None] + b.reshape(1, -1, 1) * t2[:, None]            # V x P x 3
+    patch = tangent_patch(n, cfg.patch_size, spacing)                                         # V x P x 3
     points = v[:, None, None] - depths[None, :, None, None] * n[:, None, None] + patch[:, None]  # V x D x P x 3
     samples = np.zeros((len(v), order.shape[1]) + points.shape[1:3], np.float32)              # V x M x D x P
-    h, w = views.height, views.width
     for j in np.unique(order):
         rows, slots = np.nonzero(order == j)
-        T_cam = inv_T(views.T_turntable_cam[j])
-        cam = transform_points(T_cam, points[rows].reshape(-1, 3))
-        uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
-        grid = torch.as_tensor(2 * uv / [w - 1, h - 1] - 1, dtype=torch.float32).view(1, -1, 1, 2)
-        values = torch.nn.functional.grid_sample(grey[j:j + 1], grid, align_corners=True, padding_mode="border")
-        samples[rows, slots] = values.view(len(rows), *points.shape[1:3]).numpy()
+        samples[rows, slots] = sample_view(grey, views, j, points[rows].reshape(-1, 3)).reshape(len(rows),
+                                                                                               *points.shape[1:3])
     centred = samples - samples.mean(-1, keepdims=True)
     std = np.sqrt((centred ** 2).mean(-1))                                                   # V x M x D
     unit = centred / np.maximum(std, 1e-3)[..., None]

@@ -1,0 +1,78 @@
+"""The membrane over plain surfaces: a box with textured sides and a plain top, photographed by a ring of
+cameras (images ray-traced exactly here), whose mesh has a dome on the top as NeuS leaves one."""
+
+import numpy as np
+import pytest
+import trimesh
+from helpers import look_at
+
+from n2d_reconstruct.data import Views
+from n2d_reconstruct.fair import FairConfig, fair_plain, patch_contrast, span
+
+HALF = np.array([0.03, 0.03, 0.025])
+CENTRE = np.array([0.0, 0.0, 0.025])
+K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
+W, H = 160, 120
+
+
+def _render(T: np.ndarray) -> np.ndarray:
+    """Grey image of the box: sides carry a 6 mm checker (texture), the top is a plain 128, the rest black."""
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ T[:3, :3].T
+    origin = T[:3, 3] - CENTRE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (-HALF - origin) / rays, (HALF - origin) / rays
+    near = np.minimum(t0, t1).max(-1)
+    hit = (near < np.maximum(t0, t1).min(-1)) & (near > 0)
+    p = origin + near[..., None] * rays
+    top = hit & (np.abs(p[..., 2] - HALF[2]) < 1e-9)
+    checker = (np.floor(p / 0.006).astype(int).sum(-1) % 2) * 160 + 40
+    grey = np.where(top, 128, np.where(hit, checker, 0)).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, -1)
+
+
+def _box_views(n: int = 12) -> Views:
+    azimuth = np.arange(n) * 2 * np.pi / n + 0.3
+    eyes = CENTRE + 0.3 * np.stack([np.cos(azimuth) * np.cos(np.pi / 4), np.sin(azimuth) * np.cos(np.pi / 4),
+                                    np.full(n, np.sin(np.pi / 4))], 1)
+    poses = np.stack([look_at(e, CENTRE) for e in eyes])
+    return Views(np.stack([_render(T) for T in poses]), np.zeros((n, H, W), bool), K, poses,
+                 [f"{i:04d}.png" for i in range(n)])
+
+
+def _domed_box() -> tuple[trimesh.Trimesh, np.ndarray]:
+    """The box's mesh (2 mm edges) with a 4 mm dome over the middle of its top, and which vertices are on the top."""
+    box = trimesh.creation.box(2 * HALF)
+    v, f = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=0.002)
+    mesh = trimesh.Trimesh(v + CENTRE, f)
+    v = mesh.vertices.copy()
+    r = np.hypot(*(v[:, :2] - CENTRE[:2]).T)
+    on_top = v[:, 2] > CENTRE[2] + HALF[2] - 1e-9
+    v[:, 2] += np.where(on_top, 0.004 * np.clip(1 - (r / 0.02) ** 2, 0, None), 0.0)
+    return trimesh.Trimesh(v, mesh.faces, process=False), on_top
+
+
+def test_a_dome_on_a_plain_top_is_spanned_flat_and_textured_sides_stay():
+    views = _box_views()
+    domed, on_top = _domed_box()
+    contrast = patch_contrast(domed, views, FairConfig())
+    inner = on_top & (np.abs(domed.vertices[:, :2] - CENTRE[:2]).max(1) < HALF[0] - 0.006)
+    sides = ~on_top & (np.abs(domed.vertices[:, 2] - CENTRE[2]) < HALF[2] - 0.005)
+    assert np.all(contrast[inner] < 1.0) and np.median(contrast[sides]) > 30
+    out, stats = fair_plain(domed, views, FairConfig())
+    top_z = CENTRE[2] + HALF[2]
+    assert np.abs(out.vertices[on_top, 2] - top_z).max() < 0.0005, np.abs(out.vertices[on_top, 2] - top_z).max()
+    assert np.abs(domed.vertices[on_top, 2] - top_z).max() > 0.0039
+    assert np.allclose(out.vertices[sides], domed.vertices[sides])
+    assert 0.1 < stats["plain_fraction"] < 0.3 and stats["max_move_mm"] == pytest.approx(4.0, abs=0.1)
+
+
+def test_a_plain_patch_with_no_rim_stays_and_disabled_changes_nothing():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    assert np.array_equal(span(sphere, np.ones(len(sphere.vertices), bool)).vertices, sphere.vertices)
+    views = _box_views(3)
+    domed, _ = _domed_box()
+    out, stats = fair_plain(domed, views, FairConfig(enabled=False))
+    assert out is domed and stats is None
+    with pytest.raises(ValueError, match="min_contrast"):
+        FairConfig(min_contrast=float("nan"))
