@@ -16,6 +16,7 @@ import numpy as np
 
 from n2d_capture.session import read_session
 from n2d_common.errors import ContractError
+from n2d_common.frames import inv_T, transform_points
 from n2d_common.images import read_png
 
 MIN_MASK_FRACTION = 0.001
@@ -51,6 +52,22 @@ class Views:
     @property
     def width(self) -> int:
         return self.rgb.shape[2]
+
+    @property
+    def pixel_m(self) -> float:
+        """The size of a pixel at the turntable centre, metres (median camera distance over the focal length)."""
+        return float(np.median(np.linalg.norm(self.T_turntable_cam[:, :3, 3], axis=1))) / float(self.K[0, 0])
+
+    def project(self, view: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """N x 2 pixel coordinates (float) and N depths along the optical axis (metres) of N x 3 turntable-frame
+        points in view `view`."""
+        cam = transform_points(inv_T(self.T_turntable_cam[view]), points)
+        return cam[:, :2] / cam[:, 2:] * self.K[[0, 1], [0, 1]] + self.K[:2, 2], cam[:, 2]
+
+    def pixels(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest pixel (N x 2 ints, column and row) of each pixel coordinate, and whether it is in the image."""
+        px = np.rint(uv).astype(np.int64)
+        return px, (px >= 0).all(1) & (px[:, 0] < self.width) & (px[:, 1] < self.height)
 
     def subset(self, index) -> Views:
         """The views at `index` (a list of ints or a boolean array)."""

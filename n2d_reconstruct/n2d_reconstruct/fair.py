@@ -26,7 +26,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
-from n2d_common.frames import inv_T, transform_points
+from n2d_common.frames import inv_T
 from n2d_common.progress import Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.hull import signed_distance_px
@@ -68,7 +68,7 @@ def patch_contrast(mesh: trimesh.Trimesh, views: Views, cfg: FairConfig) -> np.n
     """Per vertex, the median over its `cfg.views` most frontal views of the grey-level standard deviation of a
     patch around it (0..255); infinite where no view sees it."""
     v, n = mesh.vertices, mesh.vertex_normals
-    pixel_m = float(np.median(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1))) / views.K[0, 0]
+    pixel_m = views.pixel_m
     cos, visible = visibility(mesh, views, cfg.min_cos, 2 * pixel_m + 0.001)
     score = np.where(visible, cos, -np.inf)
     order = np.argsort(-score, axis=1)[:, :cfg.views]
@@ -127,9 +127,8 @@ def uncovering(before: trimesh.Trimesh, inside: np.ndarray, after: trimesh.Trime
     held = np.zeros(len(before.vertices), dtype=bool)
     lost = inside & ~covered(after, views)
     for i in np.flatnonzero(lost.any(axis=(1, 2))):
-        cam = transform_points(inv_T(views.T_turntable_cam[i]), before.vertices)
-        px = np.rint(cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]).astype(int)
-        seen = (px >= 0).all(1) & (px[:, 0] < views.width) & (px[:, 1] < views.height) & candidates
+        px, inside = views.pixels(views.project(i, before.vertices)[0])
+        seen = inside & candidates
         near = cv2.dilate(lost[i].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
         held[seen] |= near[px[seen, 1], px[seen, 0]]
     return held

@@ -61,8 +61,8 @@ class VisualHull:
         self.t = torch.as_tensor(T_cam_turntable[:, :3, 3], dtype=torch.float64)
         self.size = torch.tensor([views.width, views.height], dtype=torch.float64)
         self.dist = torch.as_tensor(np.stack([signed_distance_px(m) for m in views.masks]))[:, None]
-        self.pixel_m = float(np.mean(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1)) / views.K[0, 0])
-        """The size of a pixel at the turntable centre, averaged over the views, metres."""
+        self.pixel_m = views.pixel_m
+        """The size of a pixel at the turntable centre, metres."""
 
     def __call__(self, points: np.ndarray, chunk: int = 1 << 17) -> np.ndarray:
         """N x 3 turntable-frame points -> N signed distances, metres (negative inside)."""

@@ -29,7 +29,7 @@ from scipy import sparse
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
-from n2d_common.frames import inv_T, transform_points
+from n2d_common.frames import inv_T
 from n2d_common.progress import Progress, ProgressFn, no_progress
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.hull import signed_distance_px
@@ -118,7 +118,7 @@ def refine_surface(mesh: trimesh.Trimesh, views: Views, cfg: RefineConfig, progr
     v = mesh.vertices
     n = mesh.vertex_normals
     grey = grey_images(views)
-    pixel_m = float(np.median(np.linalg.norm(views.T_turntable_cam[:, :3, 3], axis=1))) / views.K[0, 0]
+    pixel_m = views.pixel_m
     step = cfg.step_px * pixel_m
     cos, visible = visibility(mesh, views, cfg.min_cos, 2 * step + 0.001)
     order, usable = pick_views(v, views.T_turntable_cam[:, :3, 3], cos, visible, cfg)
@@ -190,9 +190,7 @@ def silhouette_anchors(before: np.ndarray, depth: np.ndarray, views: Views,
     moved least, so the roof stays free."""
     held = np.zeros(len(before), dtype=bool)
     for i in range(len(views)):
-        T_cam = inv_T(views.T_turntable_cam[i])
-        cam = transform_points(T_cam, before)
-        uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
+        uv, _ = views.project(i, before)
         dist = signed_distance_px(views.masks[i])
         px = np.clip(np.rint(uv).astype(int), 0, [views.width - 1, views.height - 1])
         k = np.flatnonzero(np.abs(dist[px[:, 1], px[:, 0]]) <= radius_px + 0.5)
@@ -216,13 +214,11 @@ def visibility(mesh: trimesh.Trimesh, views: Views, min_cos: float,
     cos = np.zeros((len(v), len(views)))
     visible = np.zeros((len(v), len(views)), dtype=bool)
     for i in range(len(views)):
-        T_cam = inv_T(views.T_turntable_cam[i])
-        depth = render_depth(v, mesh.faces, views.K, T_cam, views.width, views.height)
-        cam = transform_points(T_cam, v)
-        px = np.rint(cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]).astype(int)
-        inside = (px >= 0).all(1) & (px[:, 0] < views.width) & (px[:, 1] < views.height)
+        depth = render_depth(v, mesh.faces, views.K, inv_T(views.T_turntable_cam[i]), views.width, views.height)
+        uv, z = views.project(i, v)
+        px, inside = views.pixels(uv)
         seen = np.zeros(len(v), dtype=bool)
-        seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - cam[inside, 2]) < tolerance_m
+        seen[inside] = np.abs(depth[px[inside, 1], px[inside, 0]] - z[inside]) < tolerance_m
         to_cam = views.T_turntable_cam[i][:3, 3] - v
         cos[:, i] = np.einsum("nc,nc->n", n, to_cam) / np.linalg.norm(to_cam, axis=1)
         visible[:, i] = seen & (cos[:, i] > min_cos)
@@ -268,8 +264,7 @@ def grey_images(views: Views) -> torch.Tensor:
 
 def sample_view(grey: torch.Tensor, views: Views, view: int, points: np.ndarray) -> np.ndarray:
     """Grey values (bilinear) where N x 3 turntable-frame `points` project into view `view`."""
-    cam = transform_points(inv_T(views.T_turntable_cam[view]), points)
-    uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
+    uv, _ = views.project(view, points)
     grid = torch.as_tensor(2 * uv / [views.width - 1, views.height - 1] - 1, dtype=torch.float32).view(1, -1, 1, 2)
     values = torch.nn.functional.grid_sample(grey[view:view + 1], grid, align_corners=True, padding_mode="border")
     return values.view(-1).numpy()

@@ -103,14 +103,12 @@ def bake_from_views(tm: TexturedMesh, views: Views, cfg: TextureConfig,
     for i in range(len(views)):
         T_cam = inv_T(views.T_turntable_cam[i])
         depth = render_depth(tm.vertices, tm.faces, views.K, T_cam, views.width, views.height)
-        cam = transform_points(T_cam, points)
-        uv = cam[:, :2] / cam[:, 2:] * views.K[[0, 1], [0, 1]] + views.K[:2, 2]
-        px = np.rint(uv).astype(np.int64)
-        ok = (px[:, 0] >= 0) & (px[:, 0] < views.width) & (px[:, 1] >= 0) & (px[:, 1] < views.height)
-        ok &= cam[:, 2] > 0
+        uv, z = views.project(i, points)
+        px, ok = views.pixels(uv)
+        ok &= z > 0
         pxo = px[ok]
         visible = np.zeros(len(points), dtype=bool)
-        visible[ok] = (np.abs(depth[pxo[:, 1], pxo[:, 0]] - cam[ok, 2]) < cfg.depth_tolerance_m) & \
+        visible[ok] = (np.abs(depth[pxo[:, 1], pxo[:, 0]] - z[ok]) < cfg.depth_tolerance_m) & \
             views.masks[i][pxo[:, 1], pxo[:, 0]]
         to_cam = views.T_turntable_cam[i][:3, 3] - points
         cos = np.einsum("nc,nc->n", normals, to_cam) / np.linalg.norm(to_cam, axis=1)
