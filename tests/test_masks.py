@@ -22,6 +22,7 @@ from n2d_capture.masks import (
     object_region,
     plate_region,
     predicted_board,
+    shadowed_pattern,
     write_mask,
 )
 from n2d_common.config import ConfigError, from_dict, to_dict
@@ -182,10 +183,29 @@ def test_bad_inputs_are_refused():
         foreground_mask(rgb, rgb[..., 0])
 
 
+def test_a_shadow_keeps_the_reference_pattern_an_object_does_not():
+    """The plate's pattern darkened by a shadow is told from an object, even a dark or patterned one."""
+    rng = np.random.default_rng(0)
+    pattern = np.kron(rng.choice([40.0, 230.0], (60, 320)), np.ones((2, 2)))  # printed everywhere, fine
+    reference = np.repeat(pattern[..., None], 3, axis=2)  # 640 wide: the default 5x5 window
+    view = reference.copy()
+    view[:, :160] *= 0.6                                             # a shadow: same pattern, darker
+    view[:, 240:400] = 35                                            # a dark plain object
+    view[:, 480:] = np.roll(pattern, 4, axis=0)[:, 480:, None]       # a patterned object, not the plate's
+    noisy = [np.clip(x + rng.normal(0, 2, x.shape), 0, 255).astype(np.uint8) for x in (reference, view)]
+    shadowed = shadowed_pattern(noisy[1], noisy[0])
+    assert shadowed[:, 4:156].mean() > 0.99
+    assert not shadowed[:, 244:396].any()
+    assert shadowed[:, 484:636].mean() < 0.005  # a chance match of 5x5 windows of two random patterns
+    brighter = np.clip(noisy[0].astype(int) + 30, 0, 255).astype(np.uint8)
+    assert not shadowed_pattern(brighter, noisy[0]).any()            # a shadow never brightens
+    assert not shadowed_pattern(noisy[1], noisy[0], MaskConfig(shadow_pattern_ncc=0)).any()
+
+
 def test_config_checks_and_round_trips():
     cfg = MaskConfig(close_px=4.0, grabcut_iterations=2)
     assert from_dict(MaskConfig, to_dict(cfg)) == cfg
-    for bad in ({"shadow_ratio_min": 1.2}, {"chroma_threshold": 0}, {"band_px": -1},
+    for bad in ({"shadow_ratio_min": 1.2}, {"chroma_threshold": 0}, {"band_px": -1}, {"shadow_pattern_ncc": 1.5},
                 {"board_hidden_ncc": 0.7}, {"min_component_fraction": 2}):
         with pytest.raises(ConfigError):
             from_dict(MaskConfig, {**to_dict(cfg), **bad})
