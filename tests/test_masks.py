@@ -200,6 +200,8 @@ def test_a_shadow_keeps_the_reference_pattern_an_object_does_not():
     brighter = np.clip(noisy[0].astype(int) + 30, 0, 255).astype(np.uint8)
     assert not shadowed_pattern(brighter, noisy[0]).any()            # a shadow never brightens
     assert not shadowed_pattern(noisy[1], noisy[0], MaskConfig(shadow_pattern_ncc=0)).any()
+    with pytest.raises(ValueError, match="same camera"):
+        shadowed_pattern(noisy[1], noisy[0][:, :320])
 
 
 def test_config_checks_and_round_trips():

@@ -302,6 +302,15 @@ def _check_image(name: str, rgb: np.ndarray) -> None:
                          f"{getattr(rgb, 'dtype', type(rgb))} {getattr(rgb, 'shape', '')}")
 
 
+def _check_pair(rgb: np.ndarray, reference: np.ndarray) -> None:
+    """A view and its empty-plate reference: both HxWx3 uint8 RGB images of one size."""
+    _check_image("rgb", rgb)
+    _check_image("reference", reference)
+    if rgb.shape != reference.shape:
+        raise ValueError(f"the view is {rgb.shape[1]}x{rgb.shape[0]} but the reference is "
+                         f"{reference.shape[1]}x{reference.shape[0]}: both must come from the same camera")
+
+
 def _grabcut(rgb: np.ndarray, labels: np.ndarray, iterations: int) -> np.ndarray:
     """Object pixels after GrabCut from `labels` (cv2.GC_*), run on the box around the undecided ones."""
     fg = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
@@ -338,6 +347,7 @@ def difference_seed(rgb: np.ndarray, reference: np.ndarray, geometry: ViewGeomet
         geometry: where the plate is; without it, darkening is taken for a shadow everywhere.
         cfg: thresholds.
     """
+    _check_pair(rgb, reference)
     cfg = cfg or MaskConfig()
     sigma = _scale(cfg.blur_sigma_px, rgb.shape[1])
     view, ref = _lab(rgb, sigma), _lab(reference, sigma)
@@ -357,6 +367,7 @@ def shadowed_pattern(rgb: np.ndarray, reference: np.ndarray, cfg: MaskConfig | N
     """HxW bool: pixels whose neighbourhood shows the reference's own pattern, only darker, as a shadow leaves
     it (correlated, no brighter, its contrast scaled by `shadow_ratio_min` to 1.1); all False when
     `shadow_pattern_ncc` is 0. An object rarely repeats the pattern it hides at the same place and contrast."""
+    _check_pair(rgb, reference)
     cfg = cfg or MaskConfig()
     if cfg.shadow_pattern_ncc <= 0:
         return np.zeros(rgb.shape[:2], bool)
@@ -458,11 +469,7 @@ def foreground_mask(rgb: np.ndarray, reference: np.ndarray, geometry: ViewGeomet
         ValueError: images of another type or of different sizes.
     """
     cfg = cfg or MaskConfig()
-    _check_image("rgb", rgb)
-    _check_image("reference", reference)
-    if rgb.shape != reference.shape:
-        raise ValueError(f"the view is {rgb.shape[1]}x{rgb.shape[0]} but the reference is "
-                         f"{reference.shape[1]}x{reference.shape[0]}: both must come from the same camera")
+    _check_pair(rgb, reference)
     shape, width = rgb.shape[:2], rgb.shape[1]
     region = object_region(shape, geometry, cfg) if geometry is not None else np.ones(shape, bool)
     raw = difference_seed(rgb, reference, geometry, cfg) & region
