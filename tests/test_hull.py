@@ -29,8 +29,7 @@ def test_a_bump_outside_the_hull_is_pulled_back_and_the_true_surface_barely_move
     views = _ball_views()
     hull = VisualHull(views, HullConfig())
     assert hull.pixel_m == np.linalg.norm(views.T_turntable_cam[0, :3, 3]) / 300.0  # at the turntable centre
-    ball = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_M)
-    ball.apply_translation(CENTRE)
+    ball = _ball()
     # the true surface is inside the hull, to a fraction of the masks' pixel
     assert hull(ball.vertices).max() < 0.5 * hull.pixel_m
 
@@ -49,6 +48,40 @@ def test_a_bump_outside_the_hull_is_pulled_back_and_the_true_surface_barely_move
     assert len(pulled.faces) == len(ball.faces) and pulled.is_watertight
 
 
+def _ball() -> trimesh.Trimesh:
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_M)
+    return ball.apply_translation(CENTRE)
+
+
+def test_one_mask_that_misses_a_sliver_does_not_notch_the_surface_when_one_view_is_forgiven():
+    views = _ball_views()
+    views.masks[3, :, int(K[0, 2]) + 10:] = False  # view 3's mask lost the ball's right edge (about 7 px)
+    hull = VisualHull(views, HullConfig())
+    ball = _ball()
+    slack = 0.25 * hull.pixel_m
+    notched, notched_stats = pull_inside(ball, hull, slack)
+    kept, kept_stats = pull_inside(ball, hull, slack, forgive_views=1)
+    assert notched_stats["max_move_mm"] > 2.0  # pulled into the notch
+    assert np.linalg.norm(kept.vertices - ball.vertices, axis=1).max() < 0.1 * hull.pixel_m
+    assert kept_stats["moved_fraction"] < 0.05
+
+
+def test_a_vertex_whose_normal_points_inwards_is_not_pushed_out():
+    views = _ball_views()
+    hull = VisualHull(views, HullConfig())
+    ball = _ball()
+    inflated = trimesh.Trimesh(CENTRE + 1.1 * (ball.vertices - CENTRE), ball.faces[:, ::-1], process=False)
+    before = hull(inflated.vertices)
+    pulled, stats = pull_inside(inflated, hull, 0.25 * hull.pixel_m)  # the normals of a mesh turned inside out
+    assert np.all(hull(pulled.vertices) <= before + 1e-12)
+    assert stats["moved_fraction"] == 0.0
+
+
 def test_a_slack_that_is_not_a_number_is_refused():
     with pytest.raises(ValueError, match="slack_px must be a number"):
         HullConfig(slack_px=float("nan"))
+
+
+def test_forgiving_as_many_views_as_there_are_is_refused():
+    with pytest.raises(ValueError, match="must be smaller than the number of views"):
+        VisualHull(_ball_views(4), HullConfig(pull_forgive_views=4))

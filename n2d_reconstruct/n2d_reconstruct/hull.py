@@ -38,10 +38,14 @@ class HullConfig:
     """The mesh is pulled back where it stands further than this outside the hull, in pixels at the object's
     distance (a binary mask places the outline to about half a pixel, so the hull cuts that far into flat faces);
     negative: never."""
+    pull_forgive_views: int = 1
+    """The pull back (slack_px) leaves a vertex that is outside only this many views' masks: a segmented mask that
+    misses a sliver of the object (a side seen nearly edge-on, a few pixels wide and close in colour to what lies
+    behind it) notches the hull in that view alone, and the surface would be pulled into the notch."""
 
     def __post_init__(self):
-        if self.forgive_views < 0:
-            raise ValueError("forgive_views must be >= 0")
+        if self.forgive_views < 0 or self.pull_forgive_views < 0:
+            raise ValueError("forgive_views and pull_forgive_views must be >= 0")
         if self.search_height_m <= 0:
             raise ValueError("search_height_m must be > 0")
         if not np.isfinite(self.slack_px):
@@ -52,8 +56,9 @@ class VisualHull:
     """Signed distance (metres, negative inside) to the visual hull of `views` above the plate."""
 
     def __init__(self, views: Views, cfg: HullConfig):
-        if cfg.forgive_views >= len(views):
-            raise ValueError(f"forgive_views ({cfg.forgive_views}) must be smaller than the number of views")
+        if max(cfg.forgive_views, cfg.pull_forgive_views) >= len(views):
+            raise ValueError(f"forgive_views ({cfg.forgive_views}) and pull_forgive_views ({cfg.pull_forgive_views}) "
+                             f"must be smaller than the number of views ({len(views)})")
         self.cfg = cfg
         self.K = torch.as_tensor(views.K, dtype=torch.float64)
         T_cam_turntable = np.linalg.inv(views.T_turntable_cam)
@@ -64,14 +69,16 @@ class VisualHull:
         self.pixel_m = views.pixel_m
         """The size of a pixel at the turntable centre, metres."""
 
-    def __call__(self, points: np.ndarray, chunk: int = 1 << 17) -> np.ndarray:
-        """N x 3 turntable-frame points -> N signed distances, metres (negative inside)."""
+    def __call__(self, points: np.ndarray, chunk: int = 1 << 17, forgive_views: int | None = None) -> np.ndarray:
+        """N x 3 turntable-frame points -> N signed distances, metres (negative inside); `forgive_views`
+        overrides the config's."""
+        k = self.cfg.forgive_views if forgive_views is None else forgive_views
         out = np.empty(len(points))
         for s in range(0, len(points), chunk):
-            out[s:s + chunk] = self._chunk(torch.as_tensor(points[s:s + chunk], dtype=torch.float64)).numpy()
+            out[s:s + chunk] = self._chunk(torch.as_tensor(points[s:s + chunk], dtype=torch.float64), k).numpy()
         return out
 
-    def _chunk(self, p: torch.Tensor) -> torch.Tensor:
+    def _chunk(self, p: torch.Tensor, k: int) -> torch.Tensor:
         cam = torch.einsum("vij,nj->vni", self.R, p) + self.t[:, None]          # V x N x 3
         z = cam[..., 2].clamp_min(1e-6)
         uv = torch.stack([self.K[0, 0] * cam[..., 0] / z + self.K[0, 2],
@@ -82,26 +89,31 @@ class VisualHull:
         outside = (uv < -0.5).any(-1) | (uv > self.size - 0.5).any(-1) | (cam[..., 2] <= 0)
         d = torch.where(outside, torch.full_like(d, OUTSIDE_IMAGE_PX), d.double())
         metric = d * z / self.K[0, 0]
-        k = self.cfg.forgive_views
         inside = metric.kthvalue(k + 1, dim=0).values if k else metric.min(dim=0).values
         above = p[:, 2] - self.cfg.plate_clearance_m
         return -torch.minimum(inside, above)
 
 
-def pull_inside(mesh: trimesh.Trimesh, hull: VisualHull, slack_m: float,
+def pull_inside(mesh: trimesh.Trimesh, hull: VisualHull, slack_m: float, forgive_views: int = 0,
                 iterations: int = 6) -> tuple[trimesh.Trimesh, dict]:
-    """`mesh` with every vertex that stands more than `slack_m` outside `hull` moved back to that distance
-    along its normal, and what moved (fraction of the vertices, largest move in mm).
+    """`mesh` with every vertex that stands more than `slack_m` outside `hull` (forgiving `forgive_views`
+    views) moved back to that distance along its normal, and what moved (fraction of the vertices, largest
+    move in mm).
 
     The object lies inside every silhouette cone, so a surface outside the hull is an error: NeuS rounds
     corners out and leaves broad bumps where no texture pins the depth. The hull's field is a distance to
-    first order only, hence a few passes.
+    first order only, hence a few passes. A step is taken only where it brings the vertex closer to the hull:
+    the normal of a folded face points the wrong way, and following it would push the vertex further out.
     """
     vertices = mesh.vertices.copy()
     normals = mesh.vertex_normals
+    distance = hull(vertices, forgive_views=forgive_views)
     for _ in range(iterations):
-        over = np.maximum(hull(vertices) - slack_m, 0.0)
-        vertices -= normals * over[:, None]
+        over = np.maximum(distance - slack_m, 0.0)
+        stepped = vertices - normals * over[:, None]
+        closer = hull(stepped, forgive_views=forgive_views)
+        better = (over > 0) & (closer < distance)
+        vertices[better], distance[better] = stepped[better], closer[better]
     moved = np.linalg.norm(vertices - mesh.vertices, axis=1)
     stats = {"moved_fraction": round(float(np.mean(moved > 0)), 4),
              "max_move_mm": round(float(moved.max(initial=0.0)) * 1000, 3), "slack_mm": round(slack_m * 1000, 3)}
