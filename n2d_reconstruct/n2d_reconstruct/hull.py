@@ -10,6 +10,7 @@ is continuous, so marching cubes places the surface to a fraction of a voxel.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -38,14 +39,16 @@ class HullConfig:
     """The mesh is pulled back where it stands further than this outside the hull, in pixels at the object's
     distance (a binary mask places the outline to about half a pixel, so the hull cuts that far into flat faces);
     negative: never."""
-    pull_forgive_views: int = 1
-    """The pull back (slack_px) leaves a vertex that is outside only this many views' masks: a segmented mask that
-    misses a sliver of the object (a side seen nearly edge-on, a few pixels wide and close in colour to what lies
-    behind it) notches the hull in that view alone, and the surface would be pulled into the notch."""
+    pull_forgive_px: float = 0.75
+    """The pull back (slack_px) forgives the one view whose mask alone cuts deeper than this into the surface than
+    the next view's does, in pixels at the object's distance: a segmented mask that misses a sliver of the object
+    (a side seen nearly edge-on, a few pixels wide and close in colour to what lies behind it) notches the hull in
+    that view alone, and the surface would be pulled into the notch. Exact masks agree to a fraction of a pixel
+    and keep the whole hull; negative: never forgive."""
 
     def __post_init__(self):
-        if self.forgive_views < 0 or self.pull_forgive_views < 0:
-            raise ValueError("forgive_views and pull_forgive_views must be >= 0")
+        if self.forgive_views < 0:
+            raise ValueError("forgive_views must be >= 0")
         if self.search_height_m <= 0:
             raise ValueError("search_height_m must be > 0")
         if not np.isfinite(self.slack_px):
@@ -56,9 +59,9 @@ class VisualHull:
     """Signed distance (metres, negative inside) to the visual hull of `views` above the plate."""
 
     def __init__(self, views: Views, cfg: HullConfig):
-        if max(cfg.forgive_views, cfg.pull_forgive_views) >= len(views):
-            raise ValueError(f"forgive_views ({cfg.forgive_views}) and pull_forgive_views ({cfg.pull_forgive_views}) "
-                             f"must be smaller than the number of views ({len(views)})")
+        if cfg.forgive_views + 1 >= len(views):
+            raise ValueError(f"forgive_views ({cfg.forgive_views}) must be smaller than the number of views "
+                             f"({len(views)}) less one")
         self.cfg = cfg
         self.K = torch.as_tensor(views.K, dtype=torch.float64)
         T_cam_turntable = np.linalg.inv(views.T_turntable_cam)
@@ -78,6 +81,13 @@ class VisualHull:
             out[s:s + chunk] = self._chunk(torch.as_tensor(points[s:s + chunk], dtype=torch.float64), k).numpy()
         return out
 
+    def lenient(self, points: np.ndarray, notch_m: float) -> np.ndarray:
+        """Signed distances (metres) that forgive one more view where that view alone puts a point more than
+        `notch_m` further outside than the next view does (a notch in one mask)."""
+        strict = self(points)
+        forgiving = self(points, forgive_views=self.cfg.forgive_views + 1)
+        return np.where(strict - forgiving > notch_m, forgiving, strict)
+
     def _chunk(self, p: torch.Tensor, k: int) -> torch.Tensor:
         cam = torch.einsum("vij,nj->vni", self.R, p) + self.t[:, None]          # V x N x 3
         z = cam[..., 2].clamp_min(1e-6)
@@ -94,11 +104,11 @@ class VisualHull:
         return -torch.minimum(inside, above)
 
 
-def pull_inside(mesh: trimesh.Trimesh, hull: VisualHull, slack_m: float, forgive_views: int = 0,
+def pull_inside(mesh: trimesh.Trimesh, hull: Callable[[np.ndarray], np.ndarray], slack_m: float,
                 iterations: int = 6) -> tuple[trimesh.Trimesh, dict]:
-    """`mesh` with every vertex that stands more than `slack_m` outside `hull` (forgiving `forgive_views`
-    views) moved back to that distance along its normal, and what moved (fraction of the vertices, largest
-    move in mm).
+    """`mesh` with every vertex that stands more than `slack_m` outside `hull` (a signed distance, e.g. a
+    `VisualHull` or its `lenient`) moved back to that distance along its normal, and what moved (fraction of
+    the vertices, largest move in mm).
 
     The object lies inside every silhouette cone, so a surface outside the hull is an error: NeuS rounds
     corners out and leaves broad bumps where no texture pins the depth. The hull's field is a distance to
@@ -107,11 +117,11 @@ def pull_inside(mesh: trimesh.Trimesh, hull: VisualHull, slack_m: float, forgive
     """
     vertices = mesh.vertices.copy()
     normals = mesh.vertex_normals
-    distance = hull(vertices, forgive_views=forgive_views)
+    distance = hull(vertices)
     for _ in range(iterations):
         over = np.maximum(distance - slack_m, 0.0)
         stepped = vertices - normals * over[:, None]
-        closer = hull(stepped, forgive_views=forgive_views)
+        closer = hull(stepped)
         better = (over > 0) & (closer < distance)
         vertices[better], distance[better] = stepped[better], closer[better]
     moved = np.linalg.norm(vertices - mesh.vertices, axis=1)

@@ -152,7 +152,8 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
 def _pull_inside(mesh, hull: VisualHull, cfg: HullConfig, progress: ProgressFn):
     if cfg.slack_px < 0:
         return mesh, None
-    return pull_inside(mesh, hull, cfg.slack_px * hull.pixel_m, cfg.pull_forgive_views)
+    slack, notch = cfg.slack_px * hull.pixel_m, cfg.pull_forgive_px * hull.pixel_m
+    return pull_inside(mesh, hull if notch < 0 else (lambda points: hull.lenient(points, notch)), slack)
 
 
 def _on_plate(mesh, cfg: ReconstructConfig) -> np.ndarray:
