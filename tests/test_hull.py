@@ -88,6 +88,9 @@ def test_a_slack_that_is_not_a_number_is_refused():
         HullConfig(slack_px=float("nan"))
 
 
-def test_forgiving_as_many_views_as_there_are_is_refused():
+def test_forgiving_as_many_views_as_there_are_is_refused_and_lenient_needs_a_view_to_spare():
     with pytest.raises(ValueError, match="must be smaller than the number of views"):
-        VisualHull(_ball_views(4), HullConfig(forgive_views=3))
+        VisualHull(_ball_views(4), HullConfig(forgive_views=4))
+    hull = VisualHull(_ball_views(4), HullConfig(forgive_views=3))  # every view but one forgiven already
+    points = _ball().vertices
+    assert np.array_equal(hull.lenient(points, 0.0), hull(points))

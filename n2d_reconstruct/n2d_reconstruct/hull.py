@@ -59,9 +59,9 @@ class VisualHull:
     """Signed distance (metres, negative inside) to the visual hull of `views` above the plate."""
 
     def __init__(self, views: Views, cfg: HullConfig):
-        if cfg.forgive_views + 1 >= len(views):
+        if cfg.forgive_views >= len(views):
             raise ValueError(f"forgive_views ({cfg.forgive_views}) must be smaller than the number of views "
-                             f"({len(views)}) less one")
+                             f"({len(views)})")
         self.cfg = cfg
         self.K = torch.as_tensor(views.K, dtype=torch.float64)
         T_cam_turntable = np.linalg.inv(views.T_turntable_cam)
@@ -83,8 +83,11 @@ class VisualHull:
 
     def lenient(self, points: np.ndarray, notch_m: float) -> np.ndarray:
         """Signed distances (metres) that forgive one more view where that view alone puts a point more than
-        `notch_m` further outside than the next view does (a notch in one mask)."""
+        `notch_m` further outside than the next view does (a notch in one mask); the hull itself when no view is
+        left to forgive."""
         strict = self(points)
+        if self.cfg.forgive_views + 1 >= len(self.R):
+            return strict
         forgiving = self(points, forgive_views=self.cfg.forgive_views + 1)
         return np.where(strict - forgiving > notch_m, forgiving, strict)
 
