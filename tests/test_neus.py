@@ -1,5 +1,5 @@
 """NeuS hash-grid field: encoding gradients, training on a small simulated session, cancel/resume, divergence,
-pretraining to an initial SDF, save/load. CPU, "tiny" preset; asserts outcomes, never times."""
+pretraining to an initial SDF, save/load, the smoothness loss. CPU, "tiny" preset; asserts outcomes, never times."""
 
 import threading
 from dataclasses import replace
@@ -14,6 +14,8 @@ from n2d_reconstruct.data import load_session
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.neus.encoding import HashGrid
 from n2d_reconstruct.neus.field import NeusNetwork, frontal_views
+from n2d_reconstruct.neus.renderer import RayOutput
+from n2d_reconstruct.neus.trainer import _smoothness
 from n2d_sim.session import render_session, small_world
 
 BOX_HALF_M = np.array([0.045, 0.03, 0.07])
@@ -227,3 +229,34 @@ def test_unknown_preset_is_an_error():
     with pytest.raises(N2DError, match="unknown NeuS preset"):
         NeusConfig.preset("huge")
     assert NeusConfig.preset("gpu").rays > NeusConfig.preset("cpu").rays > NeusConfig.preset("tiny").rays
+
+
+def test_smoothness_measures_the_surface_curvature_and_trains_the_sdf_network():
+    """On the initial sphere (radius R) the normals e ~ N(0, r) apart differ by |tangential e| / R: mean
+    r sqrt(pi / 2) / R. Its gradient reaches the SDF network's weights on the encoding (zero at the start, so
+    the table itself gets none yet). Rays that reach no surface give no loss."""
+    net = NeusNetwork(NeusConfig.preset("tiny").field_spec())
+    R, r, n = net.spec.init_radius, 0.02, 4096
+    gen = torch.Generator().manual_seed(0)
+    o = functional.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 0.9
+    d = -o / 0.9
+    out = RayOutput(torch.zeros(n, 3), torch.ones(n), torch.zeros(0, 3), torch.full((n,), 0.9 - R))
+    hit = torch.ones(n, dtype=torch.bool)
+    loss = _smoothness(net, o, d, out, hit, r)
+    assert float(loss) == pytest.approx(r * np.sqrt(np.pi / 2) / R, rel=0.1)
+    loss.backward()
+    assert float(net.sdf_layers[0].weight.grad[:, 3:].abs().sum()) > 0
+    missed = RayOutput(torch.zeros(n, 3), torch.zeros(n), torch.zeros(0, 3), torch.zeros(n))
+    assert float(_smoothness(net, o, d, missed, hit, r)) == 0.0
+
+
+def test_training_applies_the_smoothness_loss(session, tmp_path):
+    """The same seeded steps with and without the loss give different fields (each step reseeds, so only the
+    loss's gradient tells them apart)."""
+    data, aabb, _ = session
+    cfg = replace(NeusConfig.preset("tiny"), steps=10)
+    plain, smooth = (train_neus(data.train, aabb, replace(cfg, smooth_weight=w), workdir=tmp_path / str(w))
+                     for w in (0.0, 1.0))
+    points = np.random.default_rng(2).uniform(aabb[0], aabb[1], (2000, 3))
+    a, b = plain.sdf(points), smooth.sdf(points)
+    assert np.isfinite(b).all() and np.abs(a - b).max() > 1e-4

@@ -2,9 +2,10 @@
 
 Losses per batch: colour (mean squared error, sRGB [0, 1], composited on black) on rays whose pixel is in
 the object mask only; mask (binary cross-entropy between accumulated opacity and the mask) on all rays, so
-background rays clear the free space; eikonal on every differentiable sample. Rays come mostly from mask
-pixels, the rest from background pixels inside each view's dilated mask bounding box whose rays cross the
-object's box. With `init_sdf` the SDF network is first fitted to that shape (truncated L1 + eikonal).
+background rays clear the free space; eikonal on every differentiable sample; optionally surface smoothness
+(UNISURF) at the mask rays' surface points. Rays come mostly from mask pixels, the rest from background
+pixels inside each view's dilated mask bounding box whose rays cross the object's box. With `init_sdf` the
+SDF network is first fitted to that shape (truncated L1 + eikonal).
 """
 
 from __future__ import annotations
@@ -106,6 +107,12 @@ class NeusConfig:
     """Weight of the eikonal loss (|grad sdf| - 1)^2."""
     mask_weight: float = 0.1
     """Weight of the mask (opacity) binary cross-entropy."""
+    smooth_weight: float = 0.0
+    """Weight of the surface smoothness loss (UNISURF): the mean |n(x) - n(x + e)| of unit normals at each mask
+    ray's surface point x and a point e ~ N(0, smooth_radius_m) away. Where the photos are uniform nothing else
+    places the surface, and the hash grid keeps the lumps of its initial shape."""
+    smooth_radius_m: float = 0.003
+    """Standard deviation of the smoothness loss's offsets, metres."""
     level_start: int = 0
     """Coarse-to-fine: active hash levels at step 0 (0 = all levels from the start)."""
     level_every_steps: int = 0
@@ -413,4 +420,19 @@ def _neus_step(net: NeusNetwork, opt, sampler: RaySampler, spec: RenderSpec, cfg
     acc = out.acc.clamp(1e-3, 1 - 1e-3)  # binary cross-entropy, written out so NaN reaches the caller's check
     mask = -torch.where(label, acc.log(), (1 - acc).log()).mean()
     eikonal = ((out.grad.norm(dim=-1) - 1.0) ** 2).mean()
-    return colour + cfg.mask_weight * mask + cfg.eikonal_weight * eikonal, colour
+    loss = colour + cfg.mask_weight * mask + cfg.eikonal_weight * eikonal
+    if cfg.smooth_weight > 0:
+        loss = loss + cfg.smooth_weight * _smoothness(net, o, d, out, label, cfg.smooth_radius_m / sampler.norm.scale_m)
+    return loss, colour
+
+
+def _smoothness(net: NeusNetwork, o, d, out, label, radius: float) -> torch.Tensor:
+    """UNISURF's surface smoothness: mean |n(x) - n(x + e)| at the expected surface points x of the mask rays
+    that reach an opaque surface, e ~ N(0, radius) (normalised units)."""
+    hit = label & (out.acc.detach() > 0.5)
+    if not bool(hit.any()):
+        return torch.zeros((), device=o.device)
+    x = (o[hit] + d[hit] * (out.depth[hit] / out.acc[hit]).detach()[:, None])
+    grad = net.geometry(torch.cat([x, x + torch.randn_like(x) * radius]), gradient=True).grad
+    normals = functional.normalize(grad, dim=-1)
+    return (normals[: len(x)] - normals[len(x):]).norm(dim=-1).mean()
