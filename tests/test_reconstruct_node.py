@@ -34,7 +34,7 @@ def test_reconstruct_action(tmp_path, ros_domain):
             goal, _ = send_and_cancel(client, request, lambda _: True)
             result = wait_future(goal.get_result_async(), 300)
             assert result.status == GoalStatus.STATUS_CANCELED, (result.result.message, logs[-20:])
-            assert not cancelled.exists() and cancelled.with_name("cancelled.partial").is_dir()
+            assert not cancelled.exists() and cancelled.with_name("cancelled.partial").is_dir(), logs[-20:]
 
             feedback = []
             model = tmp_path / "model"
