@@ -1,6 +1,6 @@
 """n2d_common.ros.send_goal over real rclpy: a goal whose response never comes is sent again under a new id
-(Fast DDS drops a goal response sent before the server matched the client), and no answer at all is a
-DeviceError that names the action."""
+(Fast DDS drops a goal response sent before the server matched the client), a goal the server took although its
+response was lost is used rather than sent again, and no answer at all is a DeviceError that names the action."""
 
 import threading
 from contextlib import contextmanager
@@ -48,13 +48,22 @@ class _Server:
         self.node.destroy_node()
 
 
+class _DeafClient(SafeActionClient):
+    """Loses every goal response on arrival, as Fast DDS sometimes does without the server noticing (fault
+    injection: the server and the transport are real)."""
+
+    async def execute(self, taken_data):
+        taken_data.pop("goal", None)
+        return await super().execute(taken_data)
+
+
 @contextmanager
-def _client_and_server(ros_domain: int, silent: int):
+def _client_and_server(ros_domain: int, silent: int, client_type=SafeActionClient):
     """An action client in a background node and a _Server holding its first `silent` goals unanswered."""
     with background_node("test_send_goal_client", ros_domain) as node:
         server = _Server(silent)
         try:
-            client = SafeActionClient(node, Rotate, "/test/rotate")
+            client = client_type(node, Rotate, "/test/rotate")
             assert client.wait_for_server(timeout_sec=30)
             yield client, server
         finally:
@@ -68,6 +77,15 @@ def test_a_goal_without_answer_is_sent_again(ros_domain):
         assert goal.accepted and server.goals == 2
         result = wait_future(goal.get_result_async())
         assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.angle_rad == pytest.approx(0.5)
+
+
+@pytest.mark.timeout(60)
+def test_a_goal_taken_without_answer_is_not_sent_again(ros_domain):
+    with _client_and_server(ros_domain, silent=0, client_type=_DeafClient) as (client, server):
+        goal = send_goal(client, Rotate.Goal(angle_rad=0.25), answer_s=1.0)
+        assert goal.accepted and server.goals == 1
+        result = wait_future(goal.get_result_async())
+        assert result.status == GoalStatus.STATUS_SUCCEEDED and result.result.angle_rad == pytest.approx(0.25)
 
 
 @pytest.mark.timeout(60)

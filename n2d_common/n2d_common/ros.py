@@ -9,6 +9,7 @@ import array
 import os
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -21,6 +22,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
@@ -28,6 +30,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
+from unique_identifier_msgs.msg import UUID
 
 from n2d_common.config import flat_fields, from_dict
 from n2d_common.errors import Cancelled, ConfigError, DeviceError, N2DError
@@ -134,6 +137,9 @@ class JobActionServer:
             goal_handle.abort()
             return self._type.Result(message="another job is running")
         try:
+            self.cancel.clear()
+            if goal_handle.is_cancel_requested:  # cancelled between its acceptance and now
+                self.cancel.set()
             result = self._job(goal_handle.request, goal_handle.publish_feedback)
             end = {"succeeded": goal_handle.succeed, "cancelled": goal_handle.canceled}.get(self.state,
                                                                                            goal_handle.abort)
@@ -144,7 +150,6 @@ class JobActionServer:
 
     def _job(self, goal, publish: Callable[[Any], None]):
         result = self._type.Result()
-        self.cancel.clear()
         self.state, self.progress, self.result = "running", None, None
 
         def report(p) -> None:
@@ -171,6 +176,7 @@ class JobActionServer:
             return "the goal is incomplete"
         if not self._busy.acquire(blocking=False):
             return "another job is running"
+        self.cancel.clear()
         self.state = "running"
 
         def job() -> None:
@@ -332,6 +338,8 @@ class SafeActionClient(ActionClient):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._request_lock = threading.RLock()
+        self.server_goals: dict[bytes, int] = {}
+        """The last status the server published for each goal id it knows (GoalStatus.STATUS_*)."""
 
     def send_goal_async(self, *args, **kwargs):
         with self._request_lock:
@@ -347,6 +355,9 @@ class SafeActionClient(ActionClient):
 
     async def execute(self, taken_data):
         with self._request_lock:
+            if "status" in taken_data:
+                for status in taken_data["status"].status_list:
+                    self.server_goals[bytes(status.goal_info.goal_id.uuid)] = status.status
             return await super().execute(taken_data)
 
 
@@ -365,22 +376,28 @@ def send_goal(client: ActionClient, goal, *, what: str = "action",
     """Send `goal` on `client` (its node spinning in another thread); the server's answer, a ClientGoalHandle.
 
     Fast DDS waits only 100 ms for a service's reply writer to match the client's reader; right after
-    discovery on a loaded machine it drops the goal response, and the server ("Failed to send goal
-    response") never runs that goal. So a goal without an answer in `answer_s` is sent again under a new
+    discovery on a loaded machine it drops the goal response. Mostly the server notices ("Failed to send goal
+    response") and never runs that goal, so a goal without an answer in `answer_s` is sent again under a new
     goal id, up to `attempts` times, and the first answer to come back is used. DeviceError when none does.
     A slow answer is not a lost one (a request that arrives before discovery is re-sent at the next
-    heartbeat, seconds later), hence the long `answer_s`; and n2d's servers refuse or abort a goal while
-    another runs, so a late first answer never starts a job twice.
+    heartbeat, seconds later), hence the long `answer_s`. Sometimes the response is lost without the server
+    noticing and the goal runs: a SafeActionClient sees it in the server's goal status, and that goal is
+    used rather than sending the job again.
     """
     pending = []
     for _ in range(attempts):
-        pending.append(client.send_goal_async(goal, feedback_callback=feedback_callback))
+        goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+        pending.append((goal_id, client.send_goal_async(goal, feedback_callback=feedback_callback, goal_uuid=goal_id)))
         deadline = time.monotonic() + answer_s
         while time.monotonic() < deadline:
-            for future in pending:
+            for _, future in pending:
                 if future.done():
                     return future.result()
             time.sleep(0.01)
+        for goal_id, _ in pending:
+            if bytes(goal_id.uuid) in getattr(client, "server_goals", {}):
+                accepted = client._action_type.Impl.SendGoalService.Response(accepted=True)
+                return ClientGoalHandle(client, goal_id, accepted)
     raise DeviceError(f"{what} goal: no answer from {client._action_name} within {attempts * answer_s:.0f} s",
                       "is the node serving it running?")
 
