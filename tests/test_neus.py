@@ -9,7 +9,8 @@ import pytest
 import torch
 from torch.nn import functional
 
-from n2d_common.errors import Cancelled, N2DError
+from n2d_common.config import load_config
+from n2d_common.errors import Cancelled, ConfigError, N2DError
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.neus.encoding import HashGrid
@@ -231,6 +232,20 @@ def test_unknown_preset_is_an_error():
     assert NeusConfig.preset("gpu").rays > NeusConfig.preset("cpu").rays > NeusConfig.preset("tiny").rays
 
 
+@pytest.mark.parametrize("override, message", [
+    ("smooth_weight=-0.01", "smooth_weight must be a finite number >= 0"),
+    ("lr=nan", "lr must be a finite number > 0"),
+    ("rays=0", "rays must be a finite number > 0"),
+    ("max_res=8", "max_res must be >= base_res"),
+    ("background_fraction=1", "background_fraction must be in"),
+    ("smooth_edge_deg=200", "smooth_edge_deg must be in"),
+    ("device=tpu", "device 'tpu'"),
+])
+def test_bad_neus_config_is_refused_at_the_boundary(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(NeusConfig, overrides=[override], base=NeusConfig.preset("cpu"))
+
+
 def test_smoothness_measures_the_surface_curvature_and_trains_the_sdf_network():
     """On the initial sphere (radius R) the normals e ~ N(0, r) apart differ by |tangential e| / R: mean
     r sqrt(pi / 2) / R. Its gradient reaches the SDF network's weights on the encoding (zero at the start, so
@@ -248,6 +263,29 @@ def test_smoothness_measures_the_surface_curvature_and_trains_the_sdf_network():
     assert float(net.sdf_layers[0].weight.grad[:, 3:].abs().sum()) > 0
     missed = RayOutput(torch.zeros(n, 3), torch.zeros(n), torch.zeros(0, 3), torch.zeros(n))
     assert float(_smoothness(net, o, d, missed, hit, r)) == 0.0
+
+
+def test_smoothness_leaves_edges_alone():
+    """Pairs of normals further apart than smooth_edge_deg add a constant: on the initial sphere, pairs drawn 0.3
+    apart (mostly beyond 1 degree) give the capped loss and almost no gradient; a 180 degree cap changes nothing."""
+    net = NeusNetwork(NeusConfig.preset("tiny").field_spec())
+    R, r, n = net.spec.init_radius, 0.3, 4096
+    gen = torch.Generator().manual_seed(1)
+    o = functional.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 0.9
+    out = RayOutput(torch.zeros(n, 3), torch.ones(n), torch.zeros(0, 3), torch.full((n,), 0.9 - R))
+    hit = torch.ones(n, dtype=torch.bool)
+
+    def loss_and_gradient(edge_deg):
+        net.zero_grad()
+        torch.manual_seed(2)
+        loss = _smoothness(net, o, -o / 0.9, out, hit, r, edge_deg)
+        loss.backward()
+        return float(loss), float(net.sdf_layers[0].weight.grad.abs().sum())
+
+    full, capped, uncapped = loss_and_gradient(0.0), loss_and_gradient(1.0), loss_and_gradient(180.0)
+    assert uncapped == pytest.approx(full, rel=1e-6)
+    assert capped[0] <= 2 * np.sin(np.radians(0.5)) + 1e-6
+    assert capped[1] < 0.05 * full[1]
 
 
 def test_training_applies_the_smoothness_loss(session, tmp_path):

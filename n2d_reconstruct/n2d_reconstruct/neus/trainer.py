@@ -113,6 +113,9 @@ class NeusConfig:
     places the surface, and the hash grid keeps the lumps of its initial shape."""
     smooth_radius_m: float = 0.003
     """Standard deviation of the smoothness loss's offsets, metres."""
+    smooth_edge_deg: float = 0.0
+    """Pairs of normals further apart than this angle count as an edge and add a constant (no gradient), so the
+    loss flattens small bumps without rounding the object's edges (0: every pair counts in full)."""
     level_start: int = 0
     """Coarse-to-fine: active hash levels at step 0 (0 = all levels from the start)."""
     level_every_steps: int = 0
@@ -139,6 +142,29 @@ class NeusConfig:
     """Steps between checkpoints (also written on cancel and at the end)."""
     progress_every: int = 10
     """Steps between progress reports."""
+
+    def __post_init__(self):
+        for names, low, ok in ((_POSITIVE, "> 0", lambda v: v > 0), (_NON_NEGATIVE, ">= 0", lambda v: v >= 0)):
+            for name in names:
+                value = getattr(self, name)
+                if not (ok(value) and math.isfinite(value)):
+                    raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
+        if not (1 <= self.log2_table <= 30 and 1 <= self.colour_log2_table <= 30):
+            raise ValueError("log2_table and colour_log2_table must be in [1, 30] (2^k hash table rows per level)")
+        if self.max_res < self.base_res or self.colour_max_res < self.colour_base_res:
+            raise ValueError("max_res must be >= base_res and colour_max_res >= colour_base_res")
+        if not self.init_radius < 1:
+            raise ValueError(f"init_radius must be < 1 (the box's largest half-extent), got {self.init_radius!r}")
+        if not (0 <= self.background_fraction < 1 and 0 <= self.lr_final_factor <= 1):
+            raise ValueError("background_fraction must be in [0, 1) and lr_final_factor in [0, 1]")
+        if not self.smooth_edge_deg <= 180:
+            raise ValueError(f"smooth_edge_deg must be in [0, 180] degrees, got {self.smooth_edge_deg!r}")
+        if not math.isfinite(self.init_variance):
+            raise ValueError(f"init_variance must be a number, got {self.init_variance!r}")
+        try:
+            resolve_device(self.device)
+        except RuntimeError as exc:
+            raise ValueError(f"device {self.device!r}: {exc}; use \"auto\", \"cpu\" or \"cuda\"") from None
 
     @classmethod
     def preset(cls, name: str) -> NeusConfig:
@@ -167,6 +193,16 @@ PRESETS: dict[str, dict] = {
                 pretrain_steps=1000, pretrain_points=65536, checkpoint_every=2000),
 }
 """Overrides of the defaults per preset."""
+
+_POSITIVE = ("levels", "features", "base_res", "sdf_hidden", "colour_hidden", "colour_features", "colour_base_res",
+             "init_radius", "rays", "coarse_samples", "coarse_every", "lr", "smooth_radius_m", "texture_rays",
+             "texture_samples", "texture_lr", "pretrain_points", "pretrain_truncation", "checkpoint_every",
+             "progress_every")
+_NON_NEGATIVE = ("sdf_layers", "geo_features", "colour_layers", "colour_levels", "bbox_margin", "importance_samples",
+                 "up_sample_steps", "steps", "lr_variance", "warmup_steps", "cos_anneal_steps", "eikonal_weight",
+                 "mask_weight", "smooth_weight", "smooth_edge_deg", "level_start", "level_every_steps",
+                 "texture_steps", "pretrain_steps")
+"""NeusConfig's range checks."""
 
 _NOT_IDENTITY = ("device", "checkpoint_every", "progress_every")
 """Config fields that do not change the result: a checkpoint written with other values still resumes."""
@@ -422,17 +458,22 @@ def _neus_step(net: NeusNetwork, opt, sampler: RaySampler, spec: RenderSpec, cfg
     eikonal = ((out.grad.norm(dim=-1) - 1.0) ** 2).mean()
     loss = colour + cfg.mask_weight * mask + cfg.eikonal_weight * eikonal
     if cfg.smooth_weight > 0:
-        loss = loss + cfg.smooth_weight * _smoothness(net, o, d, out, label, cfg.smooth_radius_m / sampler.norm.scale_m)
+        loss = loss + cfg.smooth_weight * _smoothness(net, o, d, out, label, cfg.smooth_radius_m / sampler.norm.scale_m,
+                                                      cfg.smooth_edge_deg)
     return loss, colour
 
 
-def _smoothness(net: NeusNetwork, o, d, out, label, radius: float) -> torch.Tensor:
+def _smoothness(net: NeusNetwork, o, d, out, label, radius: float, edge_deg: float = 0.0) -> torch.Tensor:
     """UNISURF's surface smoothness: mean |n(x) - n(x + e)| at the expected surface points x of the mask rays
-    that reach an opaque surface, e ~ N(0, radius) (normalised units)."""
+    that reach an opaque surface, e ~ N(0, radius) (normalised units). With edge_deg > 0 each term is truncated
+    at the chord 2 sin(edge_deg / 2) of unit normals that far apart."""
     hit = label & (out.acc.detach() > 0.5)
     if not bool(hit.any()):
         return torch.zeros((), device=o.device)
     x = (o[hit] + d[hit] * (out.depth[hit] / out.acc[hit]).detach()[:, None])
     grad = net.geometry(torch.cat([x, x + torch.randn_like(x) * radius]), gradient=True).grad
     normals = functional.normalize(grad, dim=-1)
-    return (normals[: len(x)] - normals[len(x):]).norm(dim=-1).mean()
+    gaps = (normals[: len(x)] - normals[len(x):]).norm(dim=-1)
+    if edge_deg > 0:
+        gaps = gaps.clamp(max=2.0 * math.sin(math.radians(edge_deg) / 2.0))
+    return gaps.mean()
