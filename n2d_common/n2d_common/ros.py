@@ -382,22 +382,22 @@ def send_goal(client: ActionClient, goal, *, what: str = "action",
     A slow answer is not a lost one (a request that arrives before discovery is re-sent at the next
     heartbeat, seconds later), hence the long `answer_s`. Sometimes the response is lost without the server
     noticing and the goal runs: a SafeActionClient sees it in the server's goal status, and that goal is
-    used rather than sending the job again.
+    used as soon as it shows there (so it can be cancelled at once), rather than sending the job again.
     """
     pending = []
+    taken = getattr(client, "server_goals", {})
     for _ in range(attempts):
         goal_id = UUID(uuid=list(uuid.uuid4().bytes))
         pending.append((goal_id, client.send_goal_async(goal, feedback_callback=feedback_callback, goal_uuid=goal_id)))
         deadline = time.monotonic() + answer_s
         while time.monotonic() < deadline:
-            for _, future in pending:
+            for goal_id, future in pending:
                 if future.done():
                     return future.result()
+                if bytes(goal_id.uuid) in taken:
+                    accepted = client._action_type.Impl.SendGoalService.Response(accepted=True)
+                    return ClientGoalHandle(client, goal_id, accepted)
             time.sleep(0.01)
-        for goal_id, _ in pending:
-            if bytes(goal_id.uuid) in getattr(client, "server_goals", {}):
-                accepted = client._action_type.Impl.SendGoalService.Response(accepted=True)
-                return ClientGoalHandle(client, goal_id, accepted)
     raise DeviceError(f"{what} goal: no answer from {client._action_name} within {attempts * answer_s:.0f} s",
                       "is the node serving it running?")
 
