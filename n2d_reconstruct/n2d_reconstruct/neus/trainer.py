@@ -2,10 +2,10 @@
 
 Losses per batch: colour (mean squared error, sRGB [0, 1], composited on black) on rays whose pixel is in
 the object mask only; mask (binary cross-entropy between accumulated opacity and the mask) on all rays, so
-background rays clear the free space; eikonal on every differentiable sample; optionally surface smoothness
-(UNISURF) at the mask rays' surface points. Rays come mostly from mask pixels, the rest from background
-pixels inside each view's dilated mask bounding box whose rays cross the object's box. With `init_sdf` the
-SDF network is first fitted to that shape (truncated L1 + eikonal).
+background rays clear the free space; eikonal on every differentiable sample; surface smoothness (UNISURF,
+capped at edges; on in the cpu and gpu presets) at the mask rays' surface points. Rays come mostly from mask
+pixels, the rest from background pixels inside each view's dilated mask bounding box whose rays cross the
+object's box. With `init_sdf` the SDF network is first fitted to that shape (truncated L1 + eikonal).
 """
 
 from __future__ import annotations
@@ -187,10 +187,11 @@ PRESETS: dict[str, dict] = {
                  lr_variance=3e-3, pretrain_steps=100, pretrain_points=2048, checkpoint_every=100),
     "cpu": dict(levels=16, log2_table=18, max_res=1024, rays=1024, coarse_samples=32, importance_samples=32,
                 up_sample_steps=4, coarse_every=4, steps=6000, warmup_steps=200, cos_anneal_steps=1000,
-                pretrain_steps=300, checkpoint_every=500, texture_steps=1500),
+                pretrain_steps=300, checkpoint_every=500, texture_steps=1500, smooth_weight=0.01, smooth_edge_deg=30.0),
     "gpu": dict(levels=16, log2_table=19, max_res=2048, rays=4096, coarse_samples=64, importance_samples=64,
                 up_sample_steps=4, coarse_every=1, steps=20000, warmup_steps=500, cos_anneal_steps=5000,
-                pretrain_steps=1000, pretrain_points=65536, checkpoint_every=2000),
+                pretrain_steps=1000, pretrain_points=65536, checkpoint_every=2000, smooth_weight=0.01,
+                smooth_edge_deg=30.0),
 }
 """Overrides of the defaults per preset."""
 
