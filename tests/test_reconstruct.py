@@ -17,6 +17,7 @@ from n2d_common.images import read_png, write_png
 from n2d_reconstruct.mesh import close_holes, remove_pinches
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
+from n2d_reconstruct.texture import TextureConfig, unwrap
 from n2d_sim.session import render_session, small_world
 
 VIEWS = 36
@@ -80,6 +81,7 @@ def test_model_files_follow_the_contract(model):
     centre = (mesh.vertices.min(0) + mesh.vertices.max(0)) / 2
     assert np.abs(centre).max() < 1e-6
     assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+    assert (_uv_areas(mesh.visual.uv[mesh.faces]) > 0).all()  # every face has its own texels
     glb = trimesh.load(out / "mesh.glb", force="mesh")
     # glTF is Y up: the object's height (Z in the OBJ) is Y in the GLB
     assert np.allclose(np.ptp(glb.vertices, axis=0), np.ptp(mesh.vertices, axis=0)[[0, 2, 1]], atol=1e-6)
@@ -91,6 +93,21 @@ def test_model_files_follow_the_contract(model):
     assert albedo.shape == (256, 256, 3) and albedo.std() > 10
     preview = read_png(out / "preview.png")
     assert preview.shape[0] > 100 and preview.std() > 10
+
+
+def _uv_areas(face_uvs: np.ndarray) -> np.ndarray:
+    d = face_uvs[:, 1:] - face_uvs[:, :1]
+    return np.abs(d[:, 0, 0] * d[:, 1, 1] - d[:, 0, 1] * d[:, 1, 0]) / 2
+
+
+def test_every_face_gets_texels_however_small():
+    """A 1 cm ball of 5120 faces (0.06 mm2 each, the size of a detailed model's faces): xatlas works in float32 and
+    drops faces under FLT_EPSILON in area, which in metres left such faces with all their UVs at 0."""
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.005)
+    tm = unwrap(ball, TextureConfig(size_px=256))
+    assert len(tm.faces) == len(ball.faces)
+    assert (_uv_areas(tm.face_uvs) > 0).all()
+    np.testing.assert_allclose(tm.vertices[tm.faces], ball.vertices[ball.faces])  # still in metres
 
 
 def test_simulated_session_keeps_noise_free_images(session):

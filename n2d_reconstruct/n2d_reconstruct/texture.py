@@ -71,7 +71,9 @@ class TexturedMesh:
 def unwrap(mesh: trimesh.Trimesh, cfg: TextureConfig) -> TexturedMesh:
     """Charts and packing by xatlas for an S x S texture with cfg.padding_px texels between charts."""
     atlas = xatlas.Atlas()
-    atlas.add_mesh(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    # In millimetres: xatlas leaves faces under FLT_EPSILON in area out of every chart (all their UVs 0), and in
+    # metres that is 0.12 mm2, 2 % of a 40k-face model of a 10 cm object, each drawn in the colour of texel (0, 0).
+    atlas.add_mesh((1000.0 * mesh.vertices).astype(np.float32), mesh.faces.astype(np.uint32))
     pack = xatlas.PackOptions()
     pack.resolution = cfg.size_px
     pack.padding = cfg.padding_px
