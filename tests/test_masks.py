@@ -204,6 +204,30 @@ def test_a_shadow_keeps_the_reference_pattern_an_object_does_not():
         shadowed_pattern(noisy[1], noisy[0][:, :320])
 
 
+@pytest.mark.parametrize("edge, tint", [(160.9, 0.2), (160.7, 0.4)])
+def test_light_bounced_off_the_object_does_not_widen_the_mask(edge, tint):
+    """A coloured object lights the plate beside it in its own colour (Cycles frames do, and real ones): the
+    edge step takes the plate's tint from the view just outside, so the first plate pixel, 30-40 % covered by
+    the object and tinted, stays plate (with one gain for all channels it is taken for the object)."""
+    rng = np.random.default_rng(0)
+    x = np.arange(320.0)
+    cover = np.clip(edge + 0.5 - x, 0, 1)[:, None]                   # the object's share; x < edge is the object
+    plate, yellow = np.array([0.75, 0.75, 0.72]), np.array([0.65, 0.50, 0.12])  # linear RGB
+    tinted = plate * (1 - tint * np.exp(-np.maximum(x - edge, 0) / 6.0)[:, None] * (1 - yellow / plate.max()))
+
+    def photo(row: np.ndarray) -> np.ndarray:
+        srgb = np.where(row <= 0.0031308, 12.92 * row, 1.055 * row ** (1 / 2.4) - 0.055)
+        image = np.repeat(255 * srgb[None], 240, axis=0) + rng.normal(0, 1.5, (240, 320, 3))
+        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+    reference = photo(np.repeat(plate[None], 320, axis=0))
+    view = photo(cover * yellow + (1 - cover) * tinted)
+    view[:40], view[-40:] = reference[:40], reference[-40:]           # the object: rows 40-199
+    mask = foreground_mask(view, reference)
+    right = 319 - np.argmax(mask[60:-60, ::-1], axis=1)               # the last object pixel of each row
+    assert np.mean(right == int(edge)) > 0.95
+
+
 def test_config_checks_and_round_trips():
     cfg = MaskConfig(close_px=4.0, grabcut_iterations=2)
     assert from_dict(MaskConfig, to_dict(cfg)) == cfg

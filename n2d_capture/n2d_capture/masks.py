@@ -15,9 +15,10 @@ and surroundings look the same and only the object and its shadows differ.
      551 -> 805, as GrabCut's colour model now also holds shadowed white lines, like a white face seen
      edge-on over them).
   4. Edge: each pixel near the outline is the object when more than half of its colour is the
-     object's, I = a F + (1 - a) B in linear light, B the reference there (shadowed like the view
-     just outside) and F the object colour nearby that explains I best; this is what an exact mask
-     of pixel centres holds.
+     object's, I = a F + (1 - a) B in linear light, B the reference there (shadowed and tinted like
+     the view just outside, per channel: light bounced off the object tints the plate beside it) and
+     F the object colour nearby that explains I best; this is what an exact mask of pixel centres
+     holds.
 
 Without a reference (`foreground_mask_no_reference`): the board's printed pattern, predicted from its
 pose, marks the visible board as background and the board hidden by the object as object; GrabCut
@@ -397,10 +398,11 @@ def _refine_edge(rgb: np.ndarray, reference: np.ndarray, mask: np.ndarray, cfg: 
     """Decide the pixels within `edge_px` of the outline of `mask` by the share of the object in their colour.
 
     In linear light a pixel on the outline is I = a F + (1 - a) B. B is the reference there, times
-    the shadow's gain (the view over the reference just outside; the darkest nearby, as a contact
-    shadow darkens towards the object). F is taken among the object colours inside within reach,
-    the one that explains I best (texture, and the darkening of a curved surface towards its
-    silhouette, make the nearest one a poor guess). The pixel is the object when a >= 0.5, after a
+    the gain of each colour channel (the view over the reference just outside; the smallest nearby, as a
+    contact shadow darkens towards the object and light bounced off it tints the plate in its colour
+    towards it). F is taken among the object colours inside within reach, the one that explains I best
+    (texture, and the darkening of a curved surface towards its silhouette, make the nearest one a poor
+    guess). The pixel is the object when a >= 0.5, after a
     slight smoothing of a along the outline.
     """
     r = max(2, round(_scale(cfg.edge_px, rgb.shape[1])))
@@ -419,11 +421,11 @@ def _refine_edge(rgb: np.ndarray, reference: np.ndarray, mask: np.ndarray, cfg: 
     view = _SRGB_TO_LINEAR[rgb[y0:y1, x0:x1]]
     ref = _SRGB_TO_LINEAR[reference[y0:y1, x0:x1]]
 
-    gain = _local_mean(view.sum(-1), outer) / np.maximum(_local_mean(ref.sum(-1), outer), 1e-3)
-    gain = cv2.erode(np.where(outer, gain, np.float32(np.inf)), _disk(r))
+    gain = _local_mean(view, outer) / np.maximum(_local_mean(ref, outer), 1e-3)
+    gain = cv2.erode(np.where(outer[..., None], gain, np.float32(np.inf)), _disk(r))
     _, nearest = cv2.distanceTransformWithLabels((~outer).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5,
                                                  labelType=cv2.DIST_LABEL_PIXEL)
-    gain = gain.ravel()[np.flatnonzero(outer)[nearest - 1]]  # labels number `outer` in raster order
+    gain = gain.reshape(-1, 3)[np.flatnonzero(outer)[nearest - 1]]  # labels number `outer` in raster order
 
     by, bx = np.nonzero(band)
     oy, ox = np.mgrid[-reach:reach + 1, -reach:reach + 1].reshape(2, -1)
@@ -431,7 +433,7 @@ def _refine_edge(rgb: np.ndarray, reference: np.ndarray, mask: np.ndarray, cfg: 
     cy = np.clip(by[:, None] + oy[keep], 0, band.shape[0] - 1)
     cx = np.clip(bx[:, None] + ox[keep], 0, band.shape[1] - 1)
     F = _local_mean(view, inner)[cy, cx]  # N x candidates x 3
-    B = (ref[by, bx] * gain[by, bx, None])[:, None]
+    B = (ref[by, bx] * gain[by, bx])[:, None]
     d = F - B
     contrast2 = (d * d).sum(-1)
     IB = view[by, bx][:, None] - B
