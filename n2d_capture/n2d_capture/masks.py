@@ -402,8 +402,7 @@ def _refine_edge(rgb: np.ndarray, reference: np.ndarray, mask: np.ndarray, cfg: 
     contact shadow darkens towards the object and light bounced off it tints the plate in its colour
     towards it). F is taken among the object colours inside within reach, the one that explains I best
     (texture, and the darkening of a curved surface towards its silhouette, make the nearest one a poor
-    guess). The pixel is the object when a >= 0.5, after a
-    slight smoothing of a along the outline.
+    guess). The pixel is the object when a >= 0.5, after a slight smoothing of a along the outline.
     """
     r = max(2, round(_scale(cfg.edge_px, rgb.shape[1])))
     m8 = mask.astype(np.uint8)
