@@ -26,7 +26,7 @@ from n2d_capture.masks import (
     write_mask,
 )
 from n2d_common.config import ConfigError, from_dict, to_dict
-from n2d_common.images import read_png
+from n2d_common.images import linear_to_srgb, read_png
 from n2d_sim.camera import SimCamera
 from n2d_sim.objects import SAMPLE_OBJECTS
 from n2d_sim.world import SimWorldConfig
@@ -216,8 +216,7 @@ def test_light_bounced_off_the_object_does_not_widen_the_mask(edge, tint):
     tinted = plate * (1 - tint * np.exp(-np.maximum(x - edge, 0) / 6.0)[:, None] * (1 - yellow / plate.max()))
 
     def photo(row: np.ndarray) -> np.ndarray:
-        srgb = np.where(row <= 0.0031308, 12.92 * row, 1.055 * row ** (1 / 2.4) - 0.055)
-        image = np.repeat(255 * srgb[None], 240, axis=0) + rng.normal(0, 1.5, (240, 320, 3))
+        image = np.repeat(255 * linear_to_srgb(row)[None], 240, axis=0) + rng.normal(0, 1.5, (240, 320, 3))
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
     reference = photo(np.repeat(plate[None], 320, axis=0))

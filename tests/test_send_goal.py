@@ -129,9 +129,9 @@ def test_a_cancel_before_the_job_starts_cancels_it(ros_domain):
     """A goal and its cancel both wait at a JobActionServer that does not spin: rclpy then accepts the goal and
     cancels it in one pass, before the job starts. The job starts with its cancel event set, so it stops at once
     and the goal ends canceled (its cancel used to be cleared as the job started: it ran to the end). A first goal
-    and a first cancel, both answered, make sure the server's request readers are matched; the server spins on one
-    thread, as with several an entity found ready by one wait may be taken after the next (20 of 20 runs pass;
-    with the fix undone, 5 of 5 fail)."""
+    and a first cancel, both answered, make sure the server's goal and cancel readers are matched; the server spins
+    on one thread, as with several an entity found ready by one wait may be taken after the next (20 of 20 runs
+    pass; with the fix undone, 5 of 5 fail)."""
     with background_node("test_cancel_client", ros_domain) as node:
         server_node = rclpy.create_node("test_cancel_server")
         seen = []
@@ -156,7 +156,7 @@ def test_a_cancel_before_the_job_starts_cancels_it(ros_domain):
                 handle = _handle(client)
                 client.send_goal_async(Rotate.Goal(angle_rad=1.0), goal_uuid=handle.goal_id)
                 cancelled = handle.cancel_goal_async()
-                time.sleep(1.0)  # both requests reach the server's readers
+                time.sleep(1.0)  # goal and cancel reach the server's readers
             assert len(wait_future(cancelled).goals_canceling) == 1
             result = wait_future(handle.get_result_async())
             assert seen == [False, True] and jobs.state == "cancelled"

@@ -11,6 +11,11 @@ import numpy as np
 from n2d_common.contracts import atomic_write_bytes
 
 
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """The sRGB encoding (values in [0, 1]) of linear RGB in [0, 1]."""
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
+
+
 def draw_mask_outline(rgb: np.ndarray, mask: np.ndarray, color=(0, 255, 0), thickness: int = 1) -> np.ndarray:
     """A copy of `rgb` with the outline of boolean `mask` drawn on it."""
     out = rgb.copy()

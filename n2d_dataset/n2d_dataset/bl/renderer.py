@@ -17,6 +17,8 @@ import bpy
 import numpy as np
 import OpenEXR
 
+from n2d_common.images import linear_to_srgb
+
 LABEL_FILTER_PX = 0.01
 """Pixel filter width of the label render (Blender's minimum): its one sample hits the pixel centre."""
 
@@ -121,5 +123,4 @@ def auto_exposure(linear: np.ndarray, key: float = 0.18) -> float:
 def to_srgb8(linear: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:
     """8-bit sRGB (view transform "Standard") of linear RGB after an exposure correction in stops."""
     linear = np.clip(linear * 2.0 ** exposure_ev, 0.0, 1.0)
-    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
+    return np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
