@@ -40,11 +40,12 @@ class HullConfig:
     distance (a binary mask places the outline to about half a pixel, so the hull cuts that far into flat faces);
     negative: never."""
     pull_forgive_px: float = 0.75
-    """The pull back (slack_px) forgives the one view whose mask alone cuts deeper than this into the surface than
-    the next view's does, in pixels at the object's distance: a segmented mask that misses a sliver of the object
-    (a side seen nearly edge-on, a few pixels wide and close in colour to what lies behind it) notches the hull in
-    that view alone, and the surface would be pulled into the notch. Exact masks agree to a fraction of a pixel
-    and keep the whole hull; negative: never forgive."""
+    """The pull back (slack_px) and the fast path's hull forgive the one view whose mask alone cuts deeper than
+    this into the surface than the next view's does, in pixels at the object's distance: a segmented mask that
+    misses a sliver of the object (a side seen nearly edge-on, a few pixels wide and close in colour to what lies
+    behind it) notches the hull in that view alone, and the surface would be pulled into the notch, or the fast
+    path's refinement start from it (captured box: a dent 3 mm deep where one view's mask missed 1-2 pixels).
+    Exact masks agree to a fraction of a pixel and keep the whole hull; negative: never forgive."""
 
     def __post_init__(self):
         if self.forgive_views < 0:

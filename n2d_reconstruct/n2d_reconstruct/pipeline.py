@@ -3,7 +3,8 @@
 Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
 from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
 fair (`neus`: plain surfaces spanned by a membrane) -> hull (what stands outside the visual hull is
-pulled back) -> denoise (bilateral normal filtering: ripples flattened, edges kept) -> texture (xatlas;
+pulled back) -> denoise (bilateral normal filtering: ripples flattened, edges kept) -> planes (broad
+planar regions made flat, their edges and corners sharp) -> texture (xatlas;
 baked from the photos, or from the NeuS colour field) -> export (object frame, OBJ/GLB,
 models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
@@ -32,14 +33,15 @@ from n2d_reconstruct.fair import FairConfig, fair_plain
 from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside, search_box
 from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
+from n2d_reconstruct.planes import PlanesConfig, flatten_planes
 from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
 from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_views, unwrap
 
-PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.09,
-                   "texture": 0.25, "export": 0.05, "report": 0.15},
+PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.07,
+                   "planes": 0.02, "texture": 0.25, "export": 0.05, "report": 0.15},
           "neus": {"load": 0.01, "geometry": 0.83, "mesh": 0.03, "fair": 0.01, "hull": 0.005, "denoise": 0.005,
-                   "texture": 0.05, "export": 0.01, "report": 0.05}}
+                   "planes": 0.005, "texture": 0.045, "export": 0.01, "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -71,6 +73,8 @@ class ReconstructConfig:
     """The membrane over surfaces that show no texture (NeuS)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Feature-preserving denoising of the mesh (both methods)."""
+    planes: PlanesConfig = field(default_factory=PlanesConfig)
+    """Flattening of planar regions (both methods)."""
     texture: TextureConfig = field(default_factory=TextureConfig)
     """UV atlas and albedo."""
     neus: NeusConfig = field(default_factory=lambda: NeusConfig.preset("cpu"))
@@ -112,10 +116,11 @@ def _load(session_dir, cfg: ReconstructConfig, progress: ProgressFn):
 
 
 def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: ProgressFn):
-    """The visual hull, the SDF to mesh (the hull on the fast path) and the NeuS field (None on the fast path)."""
+    """The visual hull, the SDF to mesh (the forgiving hull on the fast path) and the NeuS field (None on the fast
+    path)."""
     hull = VisualHull(data.train, cfg.hull)
     if cfg.method == "fast":
-        return hull, hull, None
+        return hull, _forgiving(hull, cfg.hull), None
     box = locate(hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh.locate_voxel_m)
     aabb = box + [[-AABB_MARGIN_M] * 3, [AABB_MARGIN_M] * 3]
     aabb[0, 2] = max(aabb[0, 2], cfg.hull.plate_clearance_m - cfg.mesh.voxel_m)
@@ -149,11 +154,16 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     return mesh, passes[-1] | {"passes": passes}
 
 
+def _forgiving(hull: VisualHull, cfg: HullConfig):
+    """The hull's field forgiving the one view whose mask alone notches it (`HullConfig.pull_forgive_px`)."""
+    notch = cfg.pull_forgive_px * hull.pixel_m
+    return hull if notch < 0 else (lambda points: hull.lenient(points, notch))
+
+
 def _pull_inside(mesh, hull: VisualHull, cfg: HullConfig, progress: ProgressFn):
     if cfg.slack_px < 0:
         return mesh, None
-    slack, notch = cfg.slack_px * hull.pixel_m, cfg.pull_forgive_px * hull.pixel_m
-    return pull_inside(mesh, hull if notch < 0 else (lambda points: hull.lenient(points, notch)), slack)
+    return pull_inside(mesh, _forgiving(hull, cfg), cfg.slack_px * hull.pixel_m)
 
 
 def _on_plate(mesh, cfg: ReconstructConfig) -> np.ndarray:
@@ -195,6 +205,8 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
             mesh, faired = phases.run("fair", fair_plain, mesh, data.train, cfg.fair, _on_plate(mesh, cfg))
         mesh, pulled = phases.run("hull", _pull_inside, mesh, hull, cfg.hull)
         mesh = phases.run("denoise", denoise, mesh, cfg.denoise, _on_plate(mesh, cfg))
+        mesh, flattened = phases.run("planes", flatten_planes, mesh, data.train.pixel_m, cfg.planes,
+                                     _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
         info = phases.run("export", lambda progress: write_model(writer.path, tm.transformed(inv_T(T_turntable_obj)),
@@ -203,6 +215,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         report["refine"] = refined
         report["fair"] = faired
         report["hull"] = pulled
+        report["planes"] = flattened
         report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
         report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,
                            "diameter_mm": info["diameter"],
