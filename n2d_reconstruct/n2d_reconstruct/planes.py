@@ -9,7 +9,7 @@ truth). The bounding box is made of those crests. A region is grown from the fla
 neighbours that lie within `distance_px` of its fitted plane and turn less than `max_angle_deg` from it;
 it counts as a plane when it is broad (`min_width`, a fraction of the object's diameter) and its vertices
 scatter about the plane by no more than noise (`max_scatter_px`). A curved surface (a bottle's body) gives
-narrow strips whose sag exceeds the noise, and stays as it was.
+strips that sag as deep as `distance_px`, far more than the noise, and stays as it was.
 """
 
 from __future__ import annotations
@@ -138,7 +138,8 @@ def snap_to_planes(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray,
 
 def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fixed: np.ndarray | None = None,
                    progress: ProgressFn = no_progress) -> tuple[trimesh.Trimesh, dict | None]:
-    """`mesh` with its planar regions flattened, and what was found (None when disabled)."""
+    """`mesh` with its planar regions flattened, and what was found (None when disabled). Faces with a `fixed`
+    vertex (the cut on the plate) join no region, so those vertices stay."""
     if not cfg.enabled:
         return mesh, None
     progress(Progress(0.0, "planes", message="finding planar regions"))
