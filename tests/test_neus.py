@@ -149,26 +149,6 @@ def test_save_load_and_albedo(trained, tmp_path):
     np.testing.assert_allclose(checkpoint.sdf(points), field.sdf(points), atol=1e-6)
 
 
-def test_reflected_directions_feed_the_colour_network_the_mirror_direction(trained, tmp_path):
-    net = trained[0].net
-    mirrored = NeusNetwork(replace(net.spec, reflected_directions=True))
-    mirrored.load_state_dict(net.state_dict())  # the same weights: only the direction input differs
-    generator = torch.Generator().manual_seed(0)
-    x = torch.rand(50, 3, generator=generator) * 2 - 1
-    normals = functional.normalize(torch.randn(50, 3, generator=generator), dim=-1)
-    dirs = functional.normalize(torch.randn(50, 3, generator=generator), dim=-1)
-    with torch.no_grad():
-        geo = net.geometry(x)
-        mirror = dirs - 2 * (dirs * normals).sum(-1, keepdim=True) * normals
-        torch.testing.assert_close(mirrored.colour(geo, normals, dirs), net.colour(geo, normals, mirror))
-        assert not torch.allclose(mirrored.colour(geo, normals, dirs), net.colour(geo, normals, dirs))
-    # a field saved before the option existed loads with the plain directions it was trained with
-    state = trained[0].state()
-    del state["field_spec"]["reflected_directions"]
-    torch.save(state, tmp_path / "old.pt")
-    assert NeusField.load(tmp_path / "old.pt").net.spec.reflected_directions is False
-
-
 def test_frontal_views_pick_the_most_frontal_cameras_and_fall_back_to_the_normal():
     points = np.zeros((2, 3))
     normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])

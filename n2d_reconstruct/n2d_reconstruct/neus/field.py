@@ -47,7 +47,6 @@ class FieldSpec:
     colour_max_res: int = 2048
     init_radius: float = 0.5
     init_variance: float = 0.3
-    reflected_directions: bool = False
 
 
 @dataclass
@@ -143,8 +142,6 @@ class NeusNetwork(nn.Module):
     def colour(self, geo: FieldOutput, normals: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """sRGB in [0, 1] seen along unit `dirs` at points with geometry `geo` and unit `normals`."""
         enc = geo.enc if self.colour_grid is None else self.colour_grid((geo.x + 1.0) * 0.5)[0]
-        if self.spec.reflected_directions:  # Ref-NeRF: a gloss is a function of the mirror direction
-            dirs = dirs - 2.0 * (dirs * normals).sum(-1, keepdim=True) * normals
         h = torch.cat([geo.geo, enc, normals, sh_encode(dirs)], -1)
         for layer in self.colour_layers[:-1]:
             h = functional.relu(layer(h))

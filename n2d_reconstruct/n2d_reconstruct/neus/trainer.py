@@ -77,9 +77,6 @@ class NeusConfig:
     """Radius of the initial SDF sphere (normalised: the box's largest half-extent is 1)."""
     init_variance: float = 0.3
     """Initial NeuS variance parameter: inverse sharpness s = exp(10 * variance)."""
-    reflected_directions: bool = False
-    """The colour MLP sees the viewing direction mirrored about the normal (Ref-NeRF), not the direction itself:
-    a reflection on a glossy surface is then one function of that direction wherever it appears on the object."""
     rays: int = 1024
     """Rays per training batch."""
     background_fraction: float = 0.2
