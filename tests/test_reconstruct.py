@@ -183,8 +183,8 @@ def test_a_mask_that_misses_a_sliver_of_the_object_does_not_dent_the_fast_path(s
     # the hull alone (no refinement, and no flattening, which would square a carved edge off again)
     hull_only = {"refine": RefineConfig(enabled=False), "planes": PlanesConfig(enabled=False)}
     strict = replace(HullConfig(), pull_forgive_px=-1.0)
-    for name, s, cfg in [("exact", session[0], {}), ("strict", copy, {"hull": strict}), ("forgiving", copy, {})]:
-        reconstruct(s, tmp_path / name, _config(**cfg, **hull_only))
+    for name, source, cfg in [("exact", session[0], {}), ("strict", copy, {"hull": strict}), ("forgiving", copy, {})]:
+        reconstruct(source, tmp_path / name, _config(**cfg, **hull_only))
     carved = _furthest_mm(tmp_path / "exact", tmp_path / "strict")
     kept = _furthest_mm(tmp_path / "exact", tmp_path / "forgiving")
     # a pixel is ~1.6 mm on the object; only where the notch is shallower than the 0.75 px forgiven is it kept
