@@ -1,6 +1,6 @@
 """Run every stage's benchmark and write their numbers as one markdown table into benchmarks/RESULTS.md.
 
-    python benchmarks/run_all.py [--quick] [--only NAME[,NAME]] [--skip NAME[,NAME]] [--out PATH]
+    python benchmarks/run_all.py [--quick] [--only NAME[,NAME]] [--skip NAME[,NAME]] [--keep] [--out PATH]
                                  [--dope-model DIR | --dope-train DIR [--dope-minutes M]] [--dope-test DIR]
                                  [--args NAME='EXTRA ARGS'] [--logs DIR]
 
@@ -20,7 +20,10 @@ e.g. the one the README's numbers came from, so the hour of training is not redo
 "not run" row.
 
 The file (written atomically) holds the date, the machine (CPU, cores, RAM, GPU), this command line and one
-table: stage, metric, value, goal, met (yes / **NO**; empty where the benchmark sets no goal), machine. Every
+table: stage, metric, value, goal, met (yes / **NO**; empty where the benchmark sets no goal), machine. With
+`--keep`, the benchmarks not run this time keep their rows from the file being replaced (e.g. the DOPE rows of
+an hour-trained model, when only the stages upstream changed), their machine cell saying when they were
+measured. Every
 benchmark's rows are mapped into it whatever their layout: sub-rows get their parent's name, note columns
 are appended to the value, columns before `metric` (reconstruct's method) go to the stage. A benchmark that
 fails gets one row saying so (exit code, last line of its stderr); the others still run and this script then
@@ -63,8 +66,8 @@ QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
 VERDICTS = {"yes": "yes", "met": "yes", "no": "NO", "not met": "NO"}
 """What the benchmarks print in a met column (or a note column): the table's met."""
 
-Row = tuple[str, str, str, str, str]
-"""(stage, metric, value, goal, met)."""
+Row = tuple[str, ...]
+"""(stage, metric, value, goal, met), and the machine when it is not this one (a kept row)."""
 
 
 def _number(cell: str) -> bool:
@@ -187,12 +190,41 @@ def write_results(out: Path, machine_line: str, machine_short: str, command: str
     if quick:
         lines += ["With `--quick`: small settings, not the numbers the README cites.", ""]
     lines += ["| stage | metric | value | goal | met | machine |", "|---|---|---|---|---|---|"]
-    for stage, metric, value, goal, met in rows:
-        met = "**NO**" if met == "NO" else met
-        lines.append("| " + " | ".join(_cell(c) for c in (stage, metric, value, goal, met, machine_short)) + " |")
+    for stage, metric, value, goal, met, *where in rows:
+        met = "**NO**" if met in ("NO", "**NO**") else met
+        cells = (stage, metric, value, goal, met, where[0] if where else machine_short)
+        lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
     lines += ["", "Benchmarks run:", ""] + [f"- {r}" for r in runs]
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, "\n".join(lines) + "\n")
+
+
+def kept_results(path: Path, stages: list[str]) -> tuple[dict[str, list[Row]], dict[str, str]]:
+    """The rows and the "Benchmarks run" lines of `stages` (table names) in an earlier results file, by stage,
+    each row's machine cell dated with that file's date; nothing when there is no such file."""
+    if not path.exists():
+        return {}, {}
+    text = path.read_text(encoding="utf-8")
+    date = next((line[len("Date:"):].strip() for line in text.splitlines() if line.startswith("Date:")), "?")
+
+    def owner(stage: str) -> str | None:  # "reconstruct (fast)" belongs to "reconstruct"
+        return next((s for s in stages if stage == s or stage.startswith(s + " (")), None)
+
+    rows: dict[str, list[Row]] = collections.defaultdict(list)
+    runs: dict[str, str] = {}
+    for line in text.splitlines():
+        if line.startswith("| ") and not line.startswith(("| stage |", "|---")):
+            cells = [c.replace("\\|", "|") for c in line[2:-2].split(" | ")]
+            stage = owner(cells[0])
+            if stage and len(cells) == 6:
+                where = cells[5] if ", measured " in cells[5] else f"{cells[5]}, measured {date}"
+                rows[stage].append((*cells[:5], where))
+        elif line.startswith("- "):
+            stage = owner(line[2:].split(":", 1)[0])
+            if stage:
+                kept = "(kept from the run of " in line
+                runs[stage] = line[2:] if kept else f"{line[2:]} (kept from the run of {date})"
+    return rows, runs
 
 
 def _names(text: str, parser: argparse.ArgumentParser) -> list[str]:
@@ -208,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", metavar="NAME[,NAME]", help="run only these benchmarks")
     parser.add_argument("--skip", metavar="NAME[,NAME]", help="leave these benchmarks out")
     parser.add_argument("--quick", action="store_true", help="small settings for each benchmark (a few minutes)")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the rows of the benchmarks not run from the results file being replaced")
     parser.add_argument("--out", type=Path, default=HERE / "RESULTS.md", help="results file (default: %(default)s)")
     parser.add_argument("--logs", type=Path, help="keep each benchmark's output here as NAME.log "
                         "(default: a new temporary directory)")
@@ -246,8 +280,14 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[Row] = []
     runs: list[str] = []
     failed = []
-    for name in selected:
+    kept_rows, kept_runs = kept_results(args.out, [STAGES[n] for n in STAGES if n not in selected]) if args.keep \
+        else ({}, {})
+    for name in STAGES:
         stage = STAGES[name]
+        if name not in selected:
+            rows += kept_rows.get(stage, [])
+            runs += [kept_runs[stage]] if stage in kept_runs else []
+            continue
         bench_args = (QUICK[name] if args.quick else []) + (dope_args if name == "dope" else []) + extra[name]
         shown = shlex.join(["python", _display(str(HERE / f"{name}.py")), *bench_args])
         if name == "dope" and ("--test" not in bench_args or not {"--model", "--train"} & set(bench_args)):
