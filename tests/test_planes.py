@@ -85,3 +85,34 @@ def test_vertices_on_the_plate_cut_stay_and_flattening_can_be_turned_off():
 def test_bad_settings_are_refused(kw):
     with pytest.raises(ValueError, match="planes"):
         PlanesConfig(**kw)
+
+
+def _turned_over(mesh: trimesh.Trimesh) -> int:
+    """Faces of a box centred over the plate whose winding faces inwards (against the nearest box face)."""
+    centres = mesh.triangles_center - [0, 0, BOX_M[2] / 2]
+    axis = np.argmax(np.abs(centres) / BOX_M, axis=1)
+    outward = np.zeros_like(centres)
+    outward[np.arange(len(centres)), axis] = np.sign(centres[np.arange(len(centres)), axis])
+    return int(np.sum(np.einsum("fx,fx->f", mesh.face_normals, outward) < -0.5))
+
+
+def test_a_fin_and_a_fold_are_claimed_by_their_plane():
+    box = _fine_box()
+    v = _ripple(box, 0.0002)
+    # a fin along the top (the refined roof's ridge): one row of vertices 2 mm up, its sides steeper than 25 deg
+    ridge = (box.vertices[:, 2] > 0.1399) & (np.abs(box.vertices[:, 1]) < 0.001) & (np.abs(box.vertices[:, 0]) < 0.03)
+    v[ridge, 2] += 0.002
+    # a fold on the +x face: a vertex slid past its neighbours (its faces turn over) and 0.4 mm out
+    side = np.nonzero(np.isclose(box.vertices[:, 0], BOX_M[0] / 2))[0]
+    fold = side[np.argmin(np.linalg.norm(box.vertices[side] - [BOX_M[0] / 2, 0, 0.07], axis=1))]
+    v[fold] += [0.0004, 0.004, 0.0]
+    bad = trimesh.Trimesh(v, box.faces, process=False)
+    assert ridge.sum() >= 10 and _turned_over(bad) > 0
+    assert np.ptp(v, axis=0)[2] - BOX_M[2] > 0.0015
+
+    flat, stats = flatten_planes(bad, PIXEL_M, PlanesConfig())
+    assert stats["claimed_faces"] > 0 and stats["turned_faces"] == 0, stats
+    assert _turned_over(flat) == 0
+    assert np.abs(np.ptp(flat.vertices, axis=0) - BOX_M).max() < 0.0002, np.ptp(flat.vertices, axis=0)
+    assert np.abs(flat.vertices[ridge, 2] - BOX_M[2]).max() < 0.00025
+    assert abs(flat.vertices[fold, 0] - BOX_M[0] / 2) < 0.00025

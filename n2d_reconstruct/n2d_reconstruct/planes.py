@@ -10,6 +10,14 @@ neighbours that lie within `distance_px` of its fitted plane and turn less than 
 it counts as a plane when it is broad (`min_width`, a fraction of the object's diameter) and its vertices
 scatter about the plane by no more than noise (`max_scatter_px`). A curved surface (a bottle's body) gives
 strips that sag as deep as `distance_px`, far more than the noise, and stays as it was.
+
+The earlier phases fold the surface over here and there: a sliver turned over at a sharp edge (hull pull,
+denoising), a thin fin where the hull's roof over an unseen top was refined from both sides. Such faces turn
+too far from the plane to grow into its region, yet they stand proud of it by a few tenths of a millimetre,
+make the bounding box and render as specks. A plane claims them (`claim_strays`) when they lie within
+`distance_px` of it and either face against it or are enclosed by its region alone, and after the snap the
+vertices around faces left turned over within a plane slide within it to their neighbours' mean until the
+faces untangle (`untangle`), which moves no surface.
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from scipy import sparse
-from scipy.sparse.csgraph import breadth_first_order
+from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from n2d_common.progress import Progress, ProgressFn, no_progress
 
@@ -104,6 +112,46 @@ def find_planes(mesh: trimesh.Trimesh, distance_m: float, scatter_m: float, cfg:
     return label, planes
 
 
+def claim_strays(mesh: trimesh.Trimesh, label: np.ndarray, planes: list[tuple[np.ndarray, float]],
+                 distance_m: float, fixed: np.ndarray | None = None) -> np.ndarray:
+    """`label` with the faces that belong to a plane's region but were left out of it: faces next to the
+    region that face against its plane (a fold, grown a few faces deep), and patches enclosed by the region
+    alone (a fin, a speck), in both cases with every corner within `distance_m` of the plane."""
+    if not planes:
+        return label
+    faces, vertices = mesh.faces, mesh.vertices
+    normal = np.array([n for n, _ in planes])
+    offset = np.array([d for _, d in planes])
+    held = np.zeros(len(faces), dtype=bool) if fixed is None else fixed[faces].any(axis=1)
+    label = label.copy()
+
+    def within(face: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return np.abs(np.einsum("fcx,fx->fc", vertices[faces[face]], normal[k]) - offset[k][:, None]).max(axis=1) \
+            < distance_m
+
+    pairs = np.concatenate([mesh.face_adjacency, mesh.face_adjacency[:, ::-1]])
+    for _ in range(4):
+        face, beside = pairs[(label[pairs[:, 0]] < 0) & (label[pairs[:, 1]] >= 0) & ~held[pairs[:, 0]]].T
+        k = label[beside]
+        turned = (np.einsum("fx,fx->f", mesh.face_normals[face], normal[k]) < -0.5) & within(face, k)
+        if not turned.any():
+            break
+        label[face[turned]] = k[turned]
+    free = (label < 0) & ~held
+    inner = pairs[free[pairs[:, 0]] & free[pairs[:, 1]]]
+    _, patch = connected_components(sparse.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])),
+                                                      shape=(len(faces),) * 2), directed=False)
+    edge = pairs[free[pairs[:, 0]] & ~free[pairs[:, 1]]]
+    around = np.where(held, -1, label)  # what borders a patch: a region, or the cut on the plate (-1)
+    borders = np.unique(np.stack([patch[edge[:, 0]], around[edge[:, 1]]], axis=1), axis=0)
+    count = np.bincount(borders[:, 0], minlength=patch.max() + 1)
+    for p, k in borders[(count[borders[:, 0]] == 1) & (borders[:, 1] >= 0)]:
+        members = np.nonzero(free & (patch == p))[0]
+        if within(members, np.full(len(members), k)).all():
+            label[members] = k
+    return label
+
+
 def snap_to_planes(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray,
                    planes: list[tuple[np.ndarray, float]], max_move_m: float) -> np.ndarray:
     """Each vertex of a planar region moved to the least-squares point of the planes of the regions around it:
@@ -136,6 +184,48 @@ def snap_to_planes(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray,
     return out
 
 
+def untangle(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray, planes: list[tuple[np.ndarray, float]],
+             fixed: np.ndarray | None = None, rings: int = 2, iterations: int = 30) -> tuple[np.ndarray, int]:
+    """`vertices` with the faces turned over within their plane untangled, and how many stay turned: the vertices
+    within `rings` of such a face that lie inside one region (all their faces on its plane, not `fixed`) move to
+    the mean of their neighbours, projected back onto the plane, `iterations` times."""
+    if not planes:
+        return vertices, 0
+    normal = np.array([n for n, _ in planes])
+    offset = np.array([d for _, d in planes])
+    n_v = len(vertices)
+
+    def turned(points: np.ndarray) -> np.ndarray:
+        corners = points[faces]
+        winding = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        return (label >= 0) & (np.einsum("fx,fx->f", winding, normal[np.maximum(label, 0)]) < 0)
+
+    over = turned(vertices)
+    if not over.any():
+        return vertices, 0
+    pairs = np.unique(np.stack([faces.ravel(), np.repeat(label, 3)], axis=1), axis=0)
+    alone = np.bincount(pairs[:, 0], minlength=n_v) == 1
+    region = np.full(n_v, -1)
+    region[pairs[alone[pairs[:, 0]], 0]] = pairs[alone[pairs[:, 0]], 1]
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    adjacency = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_v, n_v)).tocsr()
+    adjacency = ((adjacency + adjacency.T) > 0).astype(float)
+    near = np.zeros(n_v, dtype=bool)
+    near[faces[over].ravel()] = True
+    for _ in range(rings):
+        near |= adjacency @ near > 0
+    if fixed is not None:
+        near &= ~fixed
+    move = np.nonzero(near & (region >= 0))[0]
+    n, d = normal[region[move]], offset[region[move]]
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()[move, None]
+    out = vertices.copy()
+    for _ in range(iterations):
+        mean = adjacency[move] @ out / degree
+        out[move] = mean - (np.einsum("vx,vx->v", mean, n) - d)[:, None] * n
+    return out, int(turned(out).sum())
+
+
 def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fixed: np.ndarray | None = None,
                    progress: ProgressFn = no_progress) -> tuple[trimesh.Trimesh, dict | None]:
     """`mesh` with its planar regions flattened, and what was found (None when disabled). Faces with a `fixed`
@@ -144,10 +234,13 @@ def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fix
         return mesh, None
     progress(Progress(0.0, "planes", message="finding planar regions"))
     distance = cfg.distance_px * pixel_m
-    label, planes = find_planes(mesh, distance, cfg.max_scatter_px * pixel_m, cfg, fixed)
+    found, planes = find_planes(mesh, distance, cfg.max_scatter_px * pixel_m, cfg, fixed)
+    label = claim_strays(mesh, found, planes, distance, fixed)
     vertices = snap_to_planes(mesh.vertices, mesh.faces, label, planes, 2 * distance)
+    vertices, turned = untangle(vertices, mesh.faces, label, planes, fixed)
     moved = np.linalg.norm(vertices - mesh.vertices, axis=1)
     stats = {"planes": len(planes), "face_fraction": round(float(np.mean(label >= 0)), 4),
              "normals": [np.round(n, 4).tolist() for n, _ in planes],
+             "claimed_faces": int(np.sum(label != found)), "turned_faces": turned,
              "max_move_mm": round(1000 * float(moved.max(initial=0.0)), 3)}
     return trimesh.Trimesh(vertices, mesh.faces, process=False), stats
