@@ -201,11 +201,13 @@ def write_results(out: Path, machine_line: str, machine_short: str, command: str
 
 def kept_results(path: Path, stages: list[str]) -> tuple[dict[str, list[Row]], dict[str, str]]:
     """The rows and the "Benchmarks run" lines of `stages` (table names) in an earlier results file, by stage,
-    each row's machine cell dated with that file's date; nothing when there is no such file."""
+    each row's machine cell dated with that file's date and each line naming its machine; nothing when there is
+    no such file."""
     if not path.exists():
         return {}, {}
     text = path.read_text(encoding="utf-8")
-    date = next((line[len("Date:"):].strip() for line in text.splitlines() if line.startswith("Date:")), "?")
+    date, machine = (next((line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith(key)), "?")
+                     for key in ("Date:", "Machine:"))
 
     def owner(stage: str) -> str | None:  # "reconstruct (fast)" belongs to "reconstruct"
         return next((s for s in stages if stage == s or stage.startswith(s + " (")), None)
@@ -223,7 +225,7 @@ def kept_results(path: Path, stages: list[str]) -> tuple[dict[str, list[Row]], d
             stage = owner(line[2:].split(":", 1)[0])
             if stage:
                 kept = "(kept from the run of " in line
-                runs[stage] = line[2:] if kept else f"{line[2:]} (kept from the run of {date})"
+                runs[stage] = line[2:] if kept else f"{line[2:]} (kept from the run of {date} on {machine})"
     return rows, runs
 
 

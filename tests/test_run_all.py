@@ -35,8 +35,8 @@ def test_keep_carries_the_rows_of_benchmarks_not_run(tmp_path):
     assert "held-out mesh \\| photo" in table[2]
     assert table[3].startswith("| dope | not run |")
     assert len(table) == 4  # the old DOPE row is replaced by this run's
-    assert f"- reconstruct: `python benchmarks/reconstruct.py`, 186 s, exit code 0 (kept from the run of {date})" \
-        in text
+    assert f"- reconstruct: `python benchmarks/reconstruct.py`, 186 s, exit code 0 (kept from the run of {date} on " \
+        "test machine)" in text
 
     # Kept again: the first date stays, nothing is doubled.
     assert run_all.main(["--only", "dope", "--keep", "--out", str(results), "--logs", str(tmp_path / "logs")]) == 0
