@@ -23,9 +23,8 @@ The file (written atomically) holds the date, the machine (CPU, cores, RAM, GPU)
 table: stage, metric, value, goal, met (yes / **NO**; empty where the benchmark sets no goal), machine. With
 `--keep`, the benchmarks not run this time keep their rows from the file being replaced (e.g. the DOPE rows of
 an hour-trained model, when only the stages upstream changed), their machine cell saying when they were
-measured. Every
-benchmark's rows are mapped into it whatever their layout: sub-rows get their parent's name, note columns
-are appended to the value, columns before `metric` (reconstruct's method) go to the stage. A benchmark that
+measured. Every benchmark's rows are mapped into it whatever their layout: sub-rows get their parent's name,
+note columns are appended to the value, columns before `metric` (reconstruct's method) go to the stage. A benchmark that
 fails gets one row saying so (exit code, last line of its stderr); the others still run and this script then
 exits with status 1.
 """
