@@ -226,6 +226,11 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray, planes:
     return out, int(turned(out).sum())
 
 
+def _areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    corners = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+
+
 def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fixed: np.ndarray | None = None,
                    progress: ProgressFn = no_progress) -> tuple[trimesh.Trimesh, dict | None]:
     """`mesh` with its planar regions flattened, and what was found (None when disabled). Faces with a `fixed`
@@ -236,7 +241,14 @@ def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fix
     distance = cfg.distance_px * pixel_m
     found, planes = find_planes(mesh, distance, cfg.max_scatter_px * pixel_m, cfg, fixed)
     label = claim_strays(mesh, found, planes, distance, fixed)
-    vertices = snap_to_planes(mesh.vertices, mesh.faces, label, planes, 2 * distance)
+    for _ in range(3):  # claims that put a face's three corners on one edge line (a sliver along it) give way
+        vertices = snap_to_planes(mesh.vertices, mesh.faces, label, planes, 2 * distance)
+        flat = np.zeros(len(vertices), dtype=bool)
+        flat[mesh.faces[_areas(vertices, mesh.faces) < (0.05 * pixel_m) ** 2].ravel()] = True
+        undo = (label != found) & flat[mesh.faces].any(axis=1)
+        if not undo.any():
+            break
+        label[undo] = found[undo]
     vertices, turned = untangle(vertices, mesh.faces, label, planes, fixed)
     moved = np.linalg.norm(vertices - mesh.vertices, axis=1)
     stats = {"planes": len(planes), "face_fraction": round(float(np.mean(label >= 0)), 4),
