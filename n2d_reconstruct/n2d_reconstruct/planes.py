@@ -112,6 +112,17 @@ def find_planes(mesh: trimesh.Trimesh, distance_m: float, scatter_m: float, cfg:
     return label, planes
 
 
+def _stacked(planes: list[tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """The planes' normals (P x 3) and offsets (P)."""
+    return np.array([n for n, _ in planes]), np.array([d for _, d in planes])
+
+
+def _winding(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Per face: the cross product of its edges in winding order (twice its area along its normal)."""
+    corners = vertices[faces]
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
 def claim_strays(mesh: trimesh.Trimesh, label: np.ndarray, planes: list[tuple[np.ndarray, float]],
                  distance_m: float, fixed: np.ndarray | None = None) -> np.ndarray:
     """`label` with the faces that belong to a plane's region but were left out of it: faces next to the
@@ -120,8 +131,7 @@ def claim_strays(mesh: trimesh.Trimesh, label: np.ndarray, planes: list[tuple[np
     if not planes:
         return label
     faces, vertices = mesh.faces, mesh.vertices
-    normal = np.array([n for n, _ in planes])
-    offset = np.array([d for _, d in planes])
+    normal, offset = _stacked(planes)
     held = np.zeros(len(faces), dtype=bool) if fixed is None else fixed[faces].any(axis=1)
     label = label.copy()
 
@@ -163,8 +173,7 @@ def snap_to_planes(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray,
     pairs = np.unique(np.stack([faces[on[:, 0]].ravel(), np.repeat(label[on[:, 0]], 3)], axis=1), axis=0)
     if not len(pairs):
         return vertices.copy()
-    normal = np.array([p[0] for p in planes])[pairs[:, 1]]
-    offset = np.array([p[1] for p in planes])[pairs[:, 1]]
+    normal, offset = (a[pairs[:, 1]] for a in _stacked(planes))
     system = np.zeros((n_v, 3, 3))
     rhs = np.zeros((n_v, 3))
     np.add.at(system, pairs[:, 0], normal[:, :, None] * normal[:, None, :])
@@ -191,14 +200,11 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray, planes:
     the mean of their neighbours, projected back onto the plane, `iterations` times."""
     if not planes:
         return vertices, 0
-    normal = np.array([n for n, _ in planes])
-    offset = np.array([d for _, d in planes])
+    normal, offset = _stacked(planes)
     n_v = len(vertices)
 
     def turned(points: np.ndarray) -> np.ndarray:
-        corners = points[faces]
-        winding = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        return (label >= 0) & (np.einsum("fx,fx->f", winding, normal[np.maximum(label, 0)]) < 0)
+        return (label >= 0) & (np.einsum("fx,fx->f", _winding(points, faces), normal[np.maximum(label, 0)]) < 0)
 
     over = turned(vertices)
     if not over.any():
@@ -226,11 +232,6 @@ def untangle(vertices: np.ndarray, faces: np.ndarray, label: np.ndarray, planes:
     return out, int(turned(out).sum())
 
 
-def _areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    corners = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-
-
 def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fixed: np.ndarray | None = None,
                    progress: ProgressFn = no_progress) -> tuple[trimesh.Trimesh, dict | None]:
     """`mesh` with its planar regions flattened, and what was found (None when disabled). Faces with a `fixed`
@@ -243,8 +244,9 @@ def flatten_planes(mesh: trimesh.Trimesh, pixel_m: float, cfg: PlanesConfig, fix
     label = claim_strays(mesh, found, planes, distance, fixed)
     for _ in range(3):  # claims that put a face's three corners on one edge line (a sliver along it) give way
         vertices = snap_to_planes(mesh.vertices, mesh.faces, label, planes, 2 * distance)
+        sliver = 0.5 * np.linalg.norm(_winding(vertices, mesh.faces), axis=1) < (0.05 * pixel_m) ** 2
         flat = np.zeros(len(vertices), dtype=bool)
-        flat[mesh.faces[_areas(vertices, mesh.faces) < (0.05 * pixel_m) ** 2].ravel()] = True
+        flat[mesh.faces[sliver].ravel()] = True
         undo = (label != found) & flat[mesh.faces].any(axis=1)
         if not undo.any():
             break
