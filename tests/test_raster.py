@@ -8,7 +8,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 
 from n2d_common.frames import transform_points
-from n2d_reconstruct.raster import rasterize, rasterize_2d, render_depth, render_textured
+from n2d_common.raster import rasterize, rasterize_2d, render_depth, render_textured
 
 W, H = 320, 240
 K = np.array([[300.0, 0.0, 159.5], [0.0, 300.0, 119.5], [0.0, 0.0, 1.0]])

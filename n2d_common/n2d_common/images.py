@@ -16,6 +16,20 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
 
 
+def auto_exposure(linear: np.ndarray, key: float = 0.18) -> float:
+    """Exposure correction in stops that brings the image's log-average luminance to `key`, as a camera's
+    auto exposure would (clipped to +-4 stops)."""
+    lum = linear @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    mean = float(np.exp(np.log(np.maximum(lum, 1e-4)).mean()))
+    return float(np.clip(np.log2(key / mean), -4.0, 4.0))
+
+
+def to_srgb8(linear: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:
+    """8-bit sRGB (view transform "Standard") of linear RGB after an exposure correction in stops."""
+    linear = np.clip(linear * 2.0 ** exposure_ev, 0.0, 1.0)
+    return np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
+
+
 def draw_mask_outline(rgb: np.ndarray, mask: np.ndarray, color=(0, 255, 0), thickness: int = 1) -> np.ndarray:
     """A copy of `rgb` with the outline of boolean `mask` drawn on it."""
     out = rgb.copy()

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from n2d_common.frames import project, quat_from_R, transform_points
+from n2d_common.raster import render_depth
 from n2d_dataset.models import Model
-from n2d_reconstruct.raster import render_depth
 
 KEYPOINT_DEPTH_TOLERANCE_M = 0.01
 """A cuboid keypoint counts as occluded when another surface lies this much nearer than it."""

@@ -20,9 +20,9 @@ import numpy as np
 from n2d_common.contracts import open_stage
 from n2d_common.frames import R_from_quat, make_T, project, transform_points
 from n2d_common.images import read_png
+from n2d_common.raster import render_depth
 from n2d_dataset.models import load_models
 from n2d_dataset.writer import DEPTH_SCALE
-from n2d_reconstruct.raster import render_depth
 
 VISIB_DEPTH_TOLERANCE_M = 0.005
 """Recount: a silhouette pixel is visible when the scene depth is within this of the object's own depth."""

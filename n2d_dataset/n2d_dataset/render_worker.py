@@ -20,6 +20,7 @@ import numpy as np
 from n2d_common.config import from_dict
 from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T, project
+from n2d_common.images import auto_exposure, to_srgb8
 from n2d_common.progress import Progress, ProgressFn
 from n2d_dataset import writer
 from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
@@ -85,7 +86,7 @@ def _render_frame(cfg: DatasetConfig, builder: SceneBuilder, root: Path, frame: 
             labels = renderer.render()
     t2 = time.perf_counter()
     linear = renderer.render()["linear"]
-    rgb = renderer.to_srgb8(linear, renderer.auto_exposure(linear, rng.uniform(0.1, 0.3)))
+    rgb = to_srgb8(linear, auto_exposure(linear, rng.uniform(0.1, 0.3)))
     t3 = time.perf_counter()
     T_cam_world = inv_T(T_world_cam)
     record = {"frame": frame, "in_hand": in_hand, "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}

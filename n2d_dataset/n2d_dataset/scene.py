@@ -19,7 +19,7 @@ from n2d_dataset.bl.camera import make_camera, world_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 from n2d_dataset.poses import random_rotation
-from n2d_dataset.textures import random_fiducial_sheet
+from n2d_dataset.textures import random_color, random_fiducial_sheet
 
 FLOOR_HALF_M = 4.0
 """Half size of the floor square, metres."""
@@ -146,7 +146,7 @@ class SceneBuilder:
         parts = [((t, w, reach), (-(hx + t / 2), 0.0, reach / 2)),              # fingers, from the palm down
                  ((t, w, reach), (hx + t / 2, 0.0, reach / 2)),
                  ((2 * hx + 2 * t + 0.02, 0.05, 0.025), (0.0, 0.0, reach + 0.0125))]  # palm
-        finish = materials.principled("gripper", materials.random_color(rng) if rng.random() < 0.5 else (0.02,) * 3,
+        finish = materials.principled("gripper", random_color(rng) if rng.random() < 0.5 else (0.02,) * 3,
                                       roughness=rng.uniform(0.2, 0.7), metallic=float(rng.random() < 0.4))[0]
         for i, (size, centre) in enumerate(parts):
             part = objects.box(f"gripper{i}", size)

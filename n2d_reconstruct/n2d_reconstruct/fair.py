@@ -28,9 +28,9 @@ from scipy.sparse.linalg import spsolve
 
 from n2d_common.frames import inv_T
 from n2d_common.progress import Progress, ProgressFn, no_progress
+from n2d_common.raster import render_depth
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.hull import signed_distance_px
-from n2d_reconstruct.raster import render_depth
 from n2d_reconstruct.refine import grey_images, sample_view, tangent_patch, visibility
 
 

@@ -31,9 +31,9 @@ from scipy.spatial import cKDTree
 
 from n2d_common.frames import inv_T
 from n2d_common.progress import Progress, ProgressFn, no_progress
+from n2d_common.raster import render_depth
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.hull import signed_distance_px
-from n2d_reconstruct.raster import render_depth
 
 FIXED_WEIGHT = 1000.0
 """Weight of a vertex known to be on the surface in the membrane fit (a found depth weighs at most 1)."""

@@ -19,8 +19,8 @@ import xatlas
 
 from n2d_common.frames import inv_T, transform_points
 from n2d_common.progress import Progress, ProgressFn, no_progress
+from n2d_common.raster import rasterize_2d, render_depth, sample_bilinear
 from n2d_reconstruct.data import Views
-from n2d_reconstruct.raster import rasterize_2d, render_depth, sample_bilinear
 
 
 @dataclass

@@ -60,8 +60,10 @@ from mathutils import Vector
 
 from n2d_capture.board import T_plate_board, board_image
 from n2d_common.config import from_dict
+from n2d_common.images import to_srgb8
 from n2d_dataset.bl import materials, objects, renderer
 from n2d_dataset.bl.camera import make_camera, set_pose
+from n2d_dataset.textures import srgb_to_linear
 from n2d_sim.world import SimWorldConfig, T_turntable_cam, object_dir, object_info
 
 OBJECT_INDEX = 1
@@ -180,11 +182,11 @@ class Scene:
     def _turntable(self):
         cfg = self.cfg
         r = cfg.board.plate_diameter_m / 2
-        plate_mat, _, _ = materials.principled("plate", materials.srgb_to_linear((0.12, 0.12, 0.13)), roughness=0.55,
+        plate_mat, _, _ = materials.principled("plate", srgb_to_linear((0.12, 0.12, 0.13)), roughness=0.55,
                                     specular=0.4)
         plate = objects.cylinder("plate", r, -0.0063, -0.0003, parent=self.rig)
         materials.assign(plate, plate_mat)
-        base_mat, _, _ = materials.principled("base", materials.srgb_to_linear((0.2, 0.2, 0.22)), roughness=0.35,
+        base_mat, _, _ = materials.principled("base", srgb_to_linear((0.2, 0.2, 0.22)), roughness=0.35,
                                               specular=0.5, metallic=0.6)
         base = objects.cylinder("base", 0.8 * r, -cfg.plate_height_m, -0.0063 - 0.001)
         materials.assign(base, base_mat)
@@ -238,12 +240,12 @@ class Scene:
         z_table = -cfg.plate_height_m
         room = self.room
         table = objects.box("table", (2.4, 1.6, 0.04), (0.0, 0.35, z_table - 0.02), parent=room)
-        materials.assign(table, _wood_material("wood", materials.srgb_to_linear((0.72, 0.55, 0.38)),
-                                      materials.srgb_to_linear((0.5, 0.35, 0.22)), cfg.clutter_seed))
+        materials.assign(table, _wood_material("wood", srgb_to_linear((0.72, 0.55, 0.38)),
+                                      srgb_to_linear((0.5, 0.35, 0.22)), cfg.clutter_seed))
         wall_y = 0.55
         wall = objects.box("wall", (3.0, 0.05, 2.0), (0.0, wall_y + 0.025, z_table + 1.0), parent=room)
-        materials.assign(wall, _pattern("wall", "noise", materials.srgb_to_linear((0.78, 0.77, 0.72)),
-                                        materials.srgb_to_linear((0.72, 0.71, 0.66)), 40.0, 0.8))
+        materials.assign(wall, _pattern("wall", "noise", srgb_to_linear((0.78, 0.77, 0.72)),
+                                        srgb_to_linear((0.72, 0.71, 0.66)), 40.0, 0.8))
         corners = [(-0.15, 0, -0.21), (0.15, 0, -0.21), (0.15, 0, 0.21), (-0.15, 0, 0.21)]
         poster = objects.mesh_object("poster", corners, [(0, 1, 2, 3)], uvs=[(0, 0), (1, 0), (1, 1), (0, 1)],
                               parent=room)
@@ -267,7 +269,7 @@ class Scene:
             height = rng.uniform(0.05, 0.28)
             hue = rng.random()
             rgb = cv2.cvtColor(np.uint8([[[hue * 180, 150, 200]]]), cv2.COLOR_HSV2RGB)[0, 0] / 255
-            color_a = materials.srgb_to_linear(rgb)
+            color_a = srgb_to_linear(rgb)
             color_b = tuple(0.3 * c + 0.05 for c in color_a)
             mat = _pattern(f"distractor{i}", kinds[i % len(kinds)], color_a, color_b,
                                     rng.uniform(4, 30), rng.uniform(0.2, 0.8))
@@ -346,7 +348,7 @@ def serve(conn: Connection) -> None:
                 if command == "close":
                     return
                 frame = scene.render(*arg)
-                frame["rgb"] = renderer.to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
+                frame["rgb"] = to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
                 frame.pop("alpha", None)
                 conn.send(("frame", frame))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):

@@ -6,18 +6,8 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from n2d_dataset.bl.materials import random_color, srgb_to_linear
 from n2d_dataset.bl.objects import link
-
-
-def kelvin_to_rgb(kelvin: float) -> tuple[float, float, float]:
-    """Approximate linear RGB (max 1) of a black body at `kelvin` (Tanner Helland's fit, 1000-40000 K)."""
-    t = np.clip(kelvin, 1000.0, 40000.0) / 100.0
-    r = 255.0 if t <= 66 else 329.698727446 * (t - 60) ** -0.1332047592
-    g = 99.4708025861 * np.log(t) - 161.1195681661 if t <= 66 else 288.1221695283 * (t - 60) ** -0.0755148492
-    b = 255.0 if t >= 66 else (0.0 if t <= 19 else 138.5177312231 * np.log(t - 10) - 305.0447927307)
-    rgb = np.array(srgb_to_linear(np.clip([r, g, b], 0, 255) / 255.0))
-    return tuple(float(v) for v in rgb / rgb.max())
+from n2d_dataset.textures import kelvin_to_rgb, random_color
 
 
 def light(name: str, kind: str, power_w: float, location, target, color=(1.0, 1.0, 1.0),

@@ -3,16 +3,9 @@
 from __future__ import annotations
 
 import bpy
-import cv2
 import numpy as np
 
-from n2d_dataset.textures import random_image
-
-
-def srgb_to_linear(c) -> tuple[float, ...]:
-    """Linear values of sRGB-encoded colour components in [0, 1]."""
-    c = np.asarray(c, dtype=float)
-    return tuple(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
+from n2d_dataset.textures import random_color, random_image
 
 
 def principled(name: str, color, roughness: float = 0.5, specular: float = 0.5, metallic: float = 0.0):
@@ -87,12 +80,6 @@ def pattern(name: str, kind: str, color_a, color_b, scale: float, roughness: flo
 PATTERNS = {"noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi", "wave": "ShaderNodeTexWave",
             "magic": "ShaderNodeTexMagic", "checker": "ShaderNodeTexChecker", "brick": "ShaderNodeTexBrick"}
 """Blender's procedural textures used by `pattern`."""
-
-
-def random_color(rng: np.random.Generator) -> tuple[float, ...]:
-    """A random linear colour, saturated or grey alike."""
-    hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0, 255), rng.uniform(20, 255)]]])
-    return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255)
 
 
 def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:

@@ -17,8 +17,6 @@ import bpy
 import numpy as np
 import OpenEXR
 
-from n2d_common.images import linear_to_srgb
-
 LABEL_FILTER_PX = 0.01
 """Pixel filter width of the label render (Blender's minimum): its one sample hits the pixel centre."""
 
@@ -110,17 +108,3 @@ def read_exr(path: Path) -> dict:
             "alpha": ch["ViewLayer.Combined.A"],
             "depth": depth,
             "index": np.round(ch["ViewLayer.Object Index.X"]).astype(np.int32)}
-
-
-def auto_exposure(linear: np.ndarray, key: float = 0.18) -> float:
-    """Exposure correction in stops that brings the image's log-average luminance to `key`, as a camera's
-    auto exposure would (clipped to +-4 stops)."""
-    lum = linear @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-    mean = float(np.exp(np.log(np.maximum(lum, 1e-4)).mean()))
-    return float(np.clip(np.log2(key / mean), -4.0, 4.0))
-
-
-def to_srgb8(linear: np.ndarray, exposure_ev: float = 0.0) -> np.ndarray:
-    """8-bit sRGB (view transform "Standard") of linear RGB after an exposure correction in stops."""
-    linear = np.clip(linear * 2.0 ** exposure_ev, 0.0, 1.0)
-    return np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
