@@ -57,7 +57,7 @@ QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "masks": ["--angles", "2"],
          "capture": ["--views", "8"],
          "reconstruct": ["--views", "12"],
-         "dataset": ["--frames", "2"],
+         "dataset": ["--frames", "2", "--raster-frames", "10"],
          "dope": ["--views", "4", "--runs", "3", "--node-seconds", "5"],
          "pipeline": ["--set", "pipeline.views=12", "--set", "pipeline.test_views=4", "--set", "pipeline.frames=24",
                       "--set", "pipeline.test_frames=8", "--set", "pipeline.train_minutes=2", "--set", "live_views=4"]}

@@ -419,7 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("models", type=Path, nargs="+", help="model directories (from n2d reconstruct)")
     p.add_argument("out", type=Path, help="dataset directory to write")
     p.add_argument("--frames", type=int, help="frames to render (default: the config's, 100)")
-    p.add_argument("--workers", type=int, help="render processes (default 1: one process using all cores)")
+    p.add_argument("--workers", type=int, help="render processes (default 0: automatic, the fastest on a CPU)")
     p.add_argument("--seed", type=int, help="seed of every random choice (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset, or discard unfinished "
                    "work of another config")

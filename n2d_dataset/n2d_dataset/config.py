@@ -7,6 +7,7 @@ whichever worker renders it and however often a run was interrupted.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -83,7 +84,14 @@ class SceneConfig:
     world_strength: tuple[float, float] = (0.1, 1.0)
     """Range of the strength of the gradient sky that lights the scene from all around."""
     physics: bool = True
-    """Drop the objects with rigid-body physics so they rest naturally (else they float where placed)."""
+    """Cycles path: drop the objects with rigid-body physics so they rest naturally (else they float where placed).
+    The fast path has no physics: it places models in their resting poses, or floating when turned at random."""
+    upright: float = 0.35
+    """Probability that a model stands as it was captured (its Z up, as it stood on the turntable: a stable pose
+    the capture saw), about a random yaw."""
+    resting: float = 0.35
+    """Probability that a model lies in one of its other resting poses (the stable faces of its convex hull, drawn
+    by how likely a drop ends in each). The rest get a uniformly random rotation."""
 
     def __post_init__(self):
         for name in ("instances_per_model", "distractors", "lights"):
@@ -92,17 +100,24 @@ class SceneConfig:
                 raise ValueError(f"scene.{name} must be a range [lo, hi] with 0 <= lo <= hi")
         if self.instances_per_model[1] < 1:
             raise ValueError("scene.instances_per_model must allow at least one copy")
-        for name in ("walls", "boards", "in_hand"):
+        if self.upright + self.resting > 1 + 1e-9:
+            raise ValueError(f"scene.upright + scene.resting is a probability, at most 1 (got {self.upright} + "
+                             f"{self.resting})")
+        for name in ("walls", "boards", "in_hand", "upright", "resting"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"scene.{name} is a probability, in [0, 1]")
 
 
 @dataclass
 class RenderConfig:
-    """Cycles settings."""
+    """How frames are rendered: the photoreal Cycles path or the fast rasterizer, and their settings."""
 
+    engine: Literal["cycles", "raster"] = "cycles"
+    """cycles: Blender's path tracer (photoreal: soft light, bounces, glossy reflections); raster: n2d's CPU
+    rasterizer with per-pixel shading and shadow maps (no bpy), an order of magnitude faster per annotated frame,
+    for the bulk of a training set. Both write the same exact labels."""
     samples: int = 16
-    """Cycles samples per pixel of the RGB image."""
+    """Cycles samples per pixel of the RGB image (cycles only)."""
     denoiser: Literal["none", "oidn"] = "oidn"
     """Denoiser: none, or OpenImageDenoise guided by albedo and normal passes."""
     max_bounces: int = 3
@@ -131,8 +146,9 @@ class DatasetConfig:
     """Number of frames to render."""
     seed: int = 0
     """Seed of every random choice (frame i uses (seed, i): reproducible whatever the worker count)."""
-    workers: int = 1
-    """Render worker processes (one bpy each). On a CPU, one worker using all cores is fastest."""
+    workers: int = 0
+    """Render worker processes. 0: automatic, what is fastest on a CPU: for Cycles one worker (one bpy) using all
+    cores, for the rasterizer one single-threaded worker per core."""
     chunk_size: int = 1000
     """Frames per BOP chunk directory (train_pbr/000000, 000001, ...)."""
     annotate: bool = True
@@ -144,10 +160,16 @@ class DatasetConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     """Rendering."""
 
+    def worker_count(self) -> int:
+        """The number of render worker processes this config runs (`workers`, or the automatic choice)."""
+        if self.workers:
+            return self.workers
+        return max(1, len(os.sched_getaffinity(0))) if self.render.engine == "raster" else 1
+
     def __post_init__(self):
         if self.frames < 1:
             raise ValueError("frames must be >= 1")
-        if self.workers < 1:
-            raise ValueError("workers must be >= 1")
+        if self.workers < 0:
+            raise ValueError("workers must be >= 0 (0: automatic)")
         if self.chunk_size < 1:
             raise ValueError("chunk_size must be >= 1")

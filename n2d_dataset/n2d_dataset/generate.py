@@ -27,7 +27,10 @@ from n2d_dataset.sheet import write_contact_sheet
 def _render(**kwargs) -> dict:
     # Imported here, in the worker process only: bpy must never be imported into the caller's process
     # (it holds global state, and a spawned child would inherit the sys.path entries it adds).
-    from n2d_dataset.render_worker import render_frames
+    if kwargs["config"]["render"]["engine"] == "raster":
+        from n2d_dataset.raster_worker import render_frames
+    else:
+        from n2d_dataset.render_worker import render_frames
 
     return render_frames(**kwargs)
 
@@ -72,7 +75,8 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
 
         progress(Progress(done / cfg.frames, "rendering", -1.0, f"{done}/{cfg.frames} frames (resumed)" if done else
                           "starting render workers", {"frames_done": done, "frames_total": cfg.frames}))
-        shards = [todo[k::cfg.workers] for k in range(cfg.workers)]
+        workers = cfg.worker_count()
+        shards = [todo[k::workers] for k in range(workers)]
         threads = [threading.Thread(target=work, args=(s,), daemon=True) for s in shards if s]
         for t in threads:
             t.start()
@@ -104,5 +108,5 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
             "cuboid_signs": CUBOID_SIGNS.astype(int).tolist(),
             "cuboids_m": {m.name: {"center": (m.min_m + m.size_m / 2).tolist(), "size": m.size_m.tolist()}
                           for m in models},
-            "annotated": cfg.annotate, **summary})
+            "annotated": cfg.annotate, "renderer": cfg.render.engine, **summary})
     return summary

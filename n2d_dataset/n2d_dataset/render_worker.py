@@ -113,7 +113,7 @@ def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[i
     shm = "/dev/shm" if Path("/dev/shm").is_dir() else None  # the EXRs never need to touch a disk
     with tempfile.TemporaryDirectory(prefix="n2d_dataset_", dir=shm) as tmp:
         r = cfg.render
-        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.workers)
+        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count())
         device = renderer.setup(Path(tmp) / "frame.exr", r.samples, r.denoiser, r.max_bounces, r.device, threads)
         for n, frame in enumerate(frames):
             if cancel.is_set():

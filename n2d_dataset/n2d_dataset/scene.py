@@ -18,6 +18,7 @@ from n2d_dataset.bl import lighting, materials, objects, physics
 from n2d_dataset.bl.camera import make_camera, world_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
+from n2d_dataset.placement import resting_poses, sample_orientation
 from n2d_dataset.poses import random_rotation
 from n2d_dataset.textures import random_color, random_fiducial_sheet
 
@@ -48,6 +49,7 @@ class SceneBuilder:
         self.cfg = cfg
         self.models = models
         self.meshes = {m.name: objects.load_model(m.directory, m.name) for m in models}
+        self.poses = {m.name: resting_poses(m.mesh) for m in models}
         self.camera = make_camera(cfg.camera.width, cfg.camera.height, cfg.camera.focal_px)
 
     def build(self, rng: np.random.Generator) -> tuple[list[Instance], Instance, bool]:
@@ -70,7 +72,8 @@ class SceneBuilder:
         in_hand = bool(rng.random() < sc.in_hand)
         held = instances[rng.integers(len(instances))] if in_hand else None
         resting = [i.obj for i in instances if i is not held] + distractors
-        self._scatter(rng, resting)
+        poses = {i.obj.name: self.poses[i.model.name] for i in instances}
+        self._scatter(rng, resting, poses)
         if sc.physics and resting:
             physics.drop(resting, [floor])
         if held is not None:
@@ -124,14 +127,19 @@ class SceneBuilder:
         materials.assign(sheet, materials.textured("fiducial_sheet", paper, roughness=rng.uniform(0.3, 0.9),
                                                    interpolation="Closest"))
 
-    def _scatter(self, rng: np.random.Generator, objs: list[bpy.types.Object]) -> None:
-        """Random orientations over the spread square, stacked in height so nothing starts interpenetrating."""
-        spread = self.cfg.scene.spread_m
+    def _scatter(self, rng: np.random.Generator, objs: list[bpy.types.Object], poses: dict) -> None:
+        """Orientations over the spread square, stacked in height so nothing starts interpenetrating: models stand
+        as captured, lie in a resting pose or turn at random (`placement.sample_orientation`), distractors turn
+        at random; physics then settles them."""
+        sc = self.cfg.scene
+        spread = sc.spread_m
         z = 0.0
         for obj in objs:
             radius = max(obj.dimensions) / 2
             z += radius + 0.005
-            T = make_T(random_rotation(rng), (*rng.uniform(-spread, spread, 2), z))
+            R = (sample_orientation(rng, poses[obj.name], sc.upright, sc.resting)[0] if obj.name in poses
+                 else random_rotation(rng))
+            T = make_T(R, (*rng.uniform(-spread, spread, 2), z))
             obj.matrix_world = Matrix(T.tolist())
             z += radius
 

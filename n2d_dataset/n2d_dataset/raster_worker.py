@@ -1,0 +1,120 @@
+"""A fast render worker: one process rendering its share of a dataset's frames with the CPU rasterizer.
+
+The counterpart of `render_worker.py` (Cycles) with the same per-frame records, writers and annotations, so
+the two paths write datasets of one format: per frame a random scene (`raster_scene.py`), cameras sampled until
+the target is visible enough (checked on the label pass, which costs one rasterization), the shaded image
+(`shading.py`), then the annotations and the frame's files, its record last. A frame's randomness comes only
+from (seed, frame), so any worker renders it the same way, and a resumed run writes identical frames.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from n2d_common.config import from_dict
+from n2d_common.errors import Cancelled
+from n2d_common.frames import inv_T, project
+from n2d_common.images import auto_exposure, to_srgb8
+from n2d_common.progress import Progress, ProgressFn
+from n2d_dataset import writer
+from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
+from n2d_dataset.config import DatasetConfig
+from n2d_dataset.models import load_models
+from n2d_dataset.poses import sample_camera
+from n2d_dataset.raster_scene import Placed, RasterSceneBuilder
+from n2d_dataset.shading import Geometry, MergedMeshes, RasterScene, shade, trace
+
+
+def _in_view(cfg: DatasetConfig, T_world_cam: np.ndarray, focus: Placed) -> bool:
+    """Whether the focus object's centre projects into the image, in front of the camera."""
+    T = inv_T(T_world_cam) @ focus.T_world_obj()
+    (u, v), = project(cfg.camera.K(), T, np.zeros((1, 3)))
+    return T[2, 3] > 0 and 0 <= u < cfg.camera.width and 0 <= v < cfg.camera.height
+
+
+def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, scene: RasterScene, merged: MergedMeshes,
+                   focus: Placed) -> tuple[np.ndarray, Geometry]:
+    """Sample camera poses until the focus target is visible enough; returns (T_world_cam, its labels)."""
+    c = cfg.camera
+    K = c.K()
+    best: tuple[float, np.ndarray | None, Geometry | None] = (-1.0, None, None)
+    for _ in range(c.max_tries):
+        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg,
+                                    c.look_at_jitter_m, c.roll_deg)
+        if not _in_view(cfg, T_world_cam, focus):
+            continue
+        g = trace(scene, K, T_world_cam, c.width, c.height, merged)
+        a = annotate(focus.model, focus.label, inv_T(T_world_cam) @ focus.T_world_obj(), K, g.index, g.depth)
+        if a.info["visib_fract"] > best[0]:
+            best = (a.info["visib_fract"], T_world_cam, g)
+        if best[0] >= c.min_visible_fraction:
+            break
+    if best[1] is None:  # never in view: look straight at it
+        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg, 0.0, 0.0)
+        return T_world_cam, trace(scene, K, T_world_cam, c.width, c.height, merged)
+    return best[1], best[2]
+
+
+def finish_image(linear: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """8-bit sRGB of a linear render as a camera would give it: auto exposure as the Cycles path, the optics' blur
+    (which also stands in for anti-aliasing) and sensor noise."""
+    linear = cv2.GaussianBlur(linear, (0, 0), float(rng.uniform(0.45, 1.0)))
+    rgb = to_srgb8(linear, auto_exposure(linear, rng.uniform(0.1, 0.3))).astype(np.float32)
+    rgb += rng.normal(0.0, rng.uniform(0.0, 3.0), rgb.shape).astype(np.float32)
+    return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+
+
+def _rss_mb() -> float:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _render_frame(cfg: DatasetConfig, builder: RasterSceneBuilder, root: Path, frame: int) -> None:
+    """Compose, render, annotate and write one frame (its record last)."""
+    K, w, h, r = cfg.camera.K(), cfg.camera.width, cfg.camera.height, cfg.render
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([cfg.seed, frame])
+    scene, placed, focus, in_hand = builder.build(rng)
+    merged = MergedMeshes(scene.bodies)
+    t1 = time.perf_counter()
+    T_world_cam, g = _choose_camera(cfg, rng, scene, merged, focus)
+    t2 = time.perf_counter()
+    rgb = finish_image(shade(scene, g, merged), rng)
+    t3 = time.perf_counter()
+    T_cam_world = inv_T(T_world_cam)
+    record = {"frame": frame, "in_hand": in_hand, "renderer": "raster",
+              "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}
+    extra = {}
+    if cfg.annotate:
+        annotations = [annotate(p.model, p.label, T_cam_world @ p.T_world_obj(), K, g.index, g.depth) for p in placed]
+        _, im = writer.frame_location(frame, cfg.chunk_size)
+        extra = {"depth_m": g.depth, "annotations": annotations,
+                 "dope": dope_frame(annotations, K, w, h, writer.rgb_name(im, r.rgb_format), g.index, g.depth)}
+        record |= {"scene_gt": [bop_gt(a) for a in annotations], "scene_gt_info": [a.info for a in annotations]}
+    t4 = time.perf_counter()
+    record["rss_mb"] = round(_rss_mb(), 1)
+    record["seconds"] = {"compose": t1 - t0, "labels": t2 - t1, "render": t3 - t2, "annotate": t4 - t3}
+    writer.write_frame(root, frame, cfg.chunk_size, rgb, r.rgb_format, r.jpeg_quality, record, **extra)
+
+
+def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
+                  cancel: threading.Event) -> dict:
+    """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
+    cfg = from_dict(DatasetConfig, config)
+    torch.set_num_threads(cfg.render.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count()))
+    builder = RasterSceneBuilder(load_models(model_dirs), cfg)
+    for n, frame in enumerate(frames):
+        if cancel.is_set():
+            raise Cancelled(f"stopped after {n} of this worker's {len(frames)} frames",
+                            "re-run the same command to resume")
+        t0 = time.perf_counter()
+        _render_frame(cfg, builder, Path(root), frame)
+        progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
+                          info={"frame": frame, "seconds": time.perf_counter() - t0, "device": "cpu (raster)"}))
+    return {"frames": len(frames), "device": "cpu (raster)"}
