@@ -166,3 +166,37 @@ def test_resting_poses():
     rng = np.random.default_rng(0)
     R, how = sample_orientation(rng, poses, upright=1.0, resting=0.0)
     assert how == "upright" and R[:, 2] @ [0, 0, 1] == pytest.approx(1.0)
+
+
+def test_mixed_dataset_and_training_mix(tmp_path):
+    """A raster dataset with photoreal_frames renders those frames with Cycles; training draws from the two kinds
+    by photoreal_mix, and refuses a mix the frames cannot give, or a dataset of another object."""
+    from n2d_dope.config import TrainConfig
+    from n2d_dope.data import check_mix, epoch_order, open_dataset, open_datasets
+    from n2d_dope.train import train
+
+    out = tmp_path / "mixed"
+    cfg = small_config("frames=3", "photoreal_frames=1", "render.samples=2", "camera.width=160", "camera.height=120",
+                       "camera.focal_px=150")
+    generate_dataset(MODELS[:1], out, cfg)
+    assert read_manifest(out)["extra"]["photoreal_frames"] == 1
+    info = open_dataset(out)
+    assert [f.photoreal for f in info.frames] == [True, False, False]
+    frames = info.frames * 20
+    order = epoch_order(frames, 0.25, np.random.default_rng(0))
+    assert abs(np.mean([frames[i].photoreal for i in order]) - 0.25) < 0.1
+    assert sorted(epoch_order(frames, -1, np.random.default_rng(0))) == list(range(len(frames)))
+    check_mix(info, info.frames, "box", 0.5)
+    with pytest.raises(ConfigError, match="no photoreal"):
+        check_mix(info, info.frames[1:], "box", 0.5)
+    with pytest.raises(ConfigError, match="every training frame is photoreal"):
+        check_mix(info, info.frames[:1], "box", 0.5)
+    bottle = tmp_path / "bottle"
+    generate_dataset(MODELS[1:], bottle, small_config("frames=2", "camera.width=160", "camera.height=120",
+                                                      "camera.focal_px=150"))
+    with pytest.raises(ConfigError, match="not box"):
+        train([out, bottle], tmp_path / "dope", TrainConfig.preset("tiny"), object_name="box")
+    with pytest.raises(ConfigError, match="photoreal_mix"):
+        load_config(TrainConfig, overrides=["photoreal_mix=1.5"])
+    assert not (tmp_path / "dope").exists() and not (tmp_path / "dope.partial").exists()
+    assert open_datasets([out]).sources == {out: ["box"]}

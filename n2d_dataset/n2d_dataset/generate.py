@@ -27,7 +27,7 @@ from n2d_dataset.sheet import write_contact_sheet
 def _render(**kwargs) -> dict:
     # Imported here, in the worker process only: bpy must never be imported into the caller's process
     # (it holds global state, and a spawned child would inherit the sys.path entries it adds).
-    if kwargs["config"]["render"]["engine"] == "raster":
+    if kwargs.pop("engine") == "raster":
         from n2d_dataset.raster_worker import render_frames
     else:
         from n2d_dataset.render_worker import render_frames
@@ -64,10 +64,10 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
                 progress(Progress(f, "rendering", eta(f), f"{counts['done']}/{cfg.frames} frames",
                                   {"frames_done": counts["done"], "frames_total": cfg.frames}))
 
-        def work(frames: list[int]) -> None:
+        def work(frames: list[int], engine: str) -> None:
             try:
                 run_in_worker(_render, {"model_dirs": [str(m.directory) for m in models], "root": str(root),
-                                              "config": to_dict(cfg), "frames": frames},
+                                        "config": to_dict(cfg), "frames": frames, "engine": engine},
                               progress=report, cancel=cancel)
             except N2DError as exc:
                 errors.append(exc)
@@ -75,13 +75,19 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
 
         progress(Progress(done / cfg.frames, "rendering", -1.0, f"{done}/{cfg.frames} frames (resumed)" if done else
                           "starting render workers", {"frames_done": done, "frames_total": cfg.frames}))
-        workers = cfg.worker_count()
-        shards = [todo[k::workers] for k in range(workers)]
-        threads = [threading.Thread(target=work, args=(s,), daemon=True) for s in shards if s]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        photoreal = set(cfg.photoreal())
+        # One engine at a time: a Cycles worker already uses every core.
+        for engine, frames in (("cycles", [f for f in todo if f in photoreal]),
+                               ("raster", [f for f in todo if f not in photoreal])):
+            workers = cfg.worker_count(engine)
+            shards = [frames[k::workers] for k in range(workers)]
+            threads = [threading.Thread(target=work, args=(s, engine), daemon=True) for s in shards if s]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            if errors:
+                break
         if errors:
             cancelled = [e for e in errors if isinstance(e, Cancelled)]
             raise (errors[0] if len(cancelled) < len(errors) else Cancelled(
@@ -108,5 +114,6 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
             "cuboid_signs": CUBOID_SIGNS.astype(int).tolist(),
             "cuboids_m": {m.name: {"center": (m.min_m + m.size_m / 2).tolist(), "size": m.size_m.tolist()}
                           for m in models},
-            "annotated": cfg.annotate, "renderer": cfg.render.engine, **summary})
+            "annotated": cfg.annotate, "renderer": cfg.render.engine, "photoreal_frames": len(cfg.photoreal()),
+            **summary})
     return summary

@@ -107,7 +107,8 @@ def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[i
                   cancel: threading.Event) -> dict:
     """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
     cfg = from_dict(DatasetConfig, config)
-    torch.set_num_threads(cfg.render.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count()))
+    cores = len(os.sched_getaffinity(0))
+    torch.set_num_threads(cfg.render.threads or max(1, cores // cfg.worker_count("raster")))
     builder = RasterSceneBuilder(load_models(model_dirs), cfg)
     for n, frame in enumerate(frames):
         if cancel.is_set():

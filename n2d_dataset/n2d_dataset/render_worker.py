@@ -89,7 +89,8 @@ def _render_frame(cfg: DatasetConfig, builder: SceneBuilder, root: Path, frame: 
     rgb = to_srgb8(linear, auto_exposure(linear, rng.uniform(0.1, 0.3)))
     t3 = time.perf_counter()
     T_cam_world = inv_T(T_world_cam)
-    record = {"frame": frame, "in_hand": in_hand, "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}
+    record = {"frame": frame, "in_hand": in_hand, "renderer": "cycles",
+              "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}
     extra = {}
     if cfg.annotate:
         annotations = [annotate(i.model, i.index, T_cam_world @ i.T_world_obj(), K, labels["index"], labels["depth"])
@@ -113,7 +114,7 @@ def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[i
     shm = "/dev/shm" if Path("/dev/shm").is_dir() else None  # the EXRs never need to touch a disk
     with tempfile.TemporaryDirectory(prefix="n2d_dataset_", dir=shm) as tmp:
         r = cfg.render
-        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count())
+        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count("cycles"))
         device = renderer.setup(Path(tmp) / "frame.exr", r.samples, r.denoiser, r.max_bounces, r.device, threads)
         for n, frame in enumerate(frames):
             if cancel.is_set():

@@ -86,6 +86,9 @@ class TrainConfig:
     """Standard deviation of the belief Gaussians, in output cells (8 input pixels)."""
     affinity_radius_cells: float = 2.5
     """Radius around each corner where the affinity field is set, in output cells."""
+    photoreal_mix: float = -1.0
+    """Fraction of the training samples drawn from photoreal (Cycles) frames, the rest from fast-path (raster)
+    frames, whatever their counts; -1: every frame once per epoch, as they come."""
     hidden_keypoints: bool = True
     """Also train keypoints hidden by other surfaces (DOPE does; PnP then has all 9 points under occlusion)."""
     min_visibility: float = 0.1
@@ -124,6 +127,9 @@ class TrainConfig:
                              f"got {self.zoom}")
         if self.lr <= 0 or self.sigma_cells <= 0 or self.affinity_radius_cells <= 0:
             raise ValueError("lr, sigma_cells and affinity_radius_cells must be positive")
+        if not (0.0 <= self.photoreal_mix <= 1.0 or self.photoreal_mix == -1.0):
+            raise ValueError(f"photoreal_mix is a probability in 0..1, or -1 for the frames as they come; got "
+                             f"{self.photoreal_mix}")
         if not 0.0 <= self.holdout < 0.5:
             raise ValueError(f"holdout must be in 0..0.5, got {self.holdout}")
 

@@ -7,7 +7,7 @@ and the visible masks in `mask_visib/`. The cuboid of each object, and the corne
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -29,6 +29,8 @@ class Frame:
     annotation: Path
     chunk: Path
     frame_id: int
+    photoreal: bool = True
+    """Rendered with Cycles (False: the fast rasterizer)."""
 
     def masks(self) -> list[Path]:
         """Visible masks of every annotated instance in the frame (all objects)."""
@@ -48,6 +50,8 @@ class DatasetInfo:
     image_size: tuple[int, int]
     models: dict[str, str]
     """Object name -> model directory."""
+    sources: dict[Path, list[str]] = field(default_factory=dict)
+    """Each dataset read -> the objects it shows."""
 
 
 def open_dataset(directory: str | Path) -> DatasetInfo:
@@ -59,17 +63,24 @@ def open_dataset(directory: str | Path) -> DatasetInfo:
         raise ContractError(f"{directory} was rendered without annotations", "generate it with annotate: true")
     signs = np.array(extra["cuboid_signs"], dtype=float)
     cuboids = {name: np.array(c["center"]) + signs * np.array(c["size"]) / 2 for name, c in extra["cuboids_m"].items()}
+    chunk_size = int(manifest["config"].get("chunk_size", 1000))
+    # Datasets written before the fast path existed are all Cycles frames.
+    photoreal = int(extra.get("photoreal_frames", extra.get("frames", 0) if extra.get("renderer", "cycles") == "cycles"
+                              else 0))
     frames = []
     for annotation in sorted(directory.glob("train_pbr/*/rgb/*.json")):
         image = next((annotation.with_suffix(s) for s in (".jpg", ".png") if annotation.with_suffix(s).is_file()),
                      None)
         if image is not None:
-            frames.append(Frame(image, annotation, annotation.parent.parent, int(annotation.stem)))
+            chunk = annotation.parent.parent
+            index = int(chunk.name) * chunk_size + int(annotation.stem)
+            frames.append(Frame(image, annotation, chunk, int(annotation.stem), index < photoreal))
     if not frames:
         raise ContractError(f"{directory} has no frames with DOPE annotations (train_pbr/*/rgb/*.json)",
                             "generate the dataset with n2d dataset")
     return DatasetInfo(directory, frames, cuboids, list(extra["cuboid_order"]), float(camera["focal_px"]),
-                       (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]))
+                       (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]),
+                       {directory: sorted(cuboids)})
 
 
 def open_datasets(directories: list[str | Path]) -> DatasetInfo:
@@ -95,7 +106,45 @@ def open_datasets(directories: list[str | Path]) -> DatasetInfo:
             cuboids[name] = cuboid
         models.update({k: v for k, v in info.models.items() if k not in models})
     return DatasetInfo(first.directory, [f for info in infos for f in info.frames], cuboids, first.cuboid_order,
-                       first.focal_px, first.image_size, models)
+                       first.focal_px, first.image_size, models, {d: o for i in infos for d, o in i.sources.items()})
+
+
+def epoch_order(frames: list[Frame], photoreal_mix: float, rng: np.random.Generator) -> np.ndarray:
+    """The frame indices of one training epoch (as many as there are frames).
+
+    photoreal_mix < 0: every frame once, shuffled. Otherwise each sample is a photoreal (Cycles) frame with that
+    probability and a fast-path frame else, each kind gone through in a shuffled order of its own (again when
+    used up), so the mix holds however many frames of each kind the dataset has."""
+    if photoreal_mix < 0:
+        return rng.permutation(len(frames))
+    kinds = np.array([f.photoreal for f in frames])
+    pools = [np.flatnonzero(~kinds), np.flatnonzero(kinds)]
+    draws = (rng.random(len(frames)) < photoreal_mix).astype(int)
+    order = np.empty(len(frames), np.int64)
+    for kind, pool in enumerate(pools):
+        slots = np.flatnonzero(draws == kind)
+        if len(slots):
+            repeats = -(-len(slots) // len(pool))
+            order[slots] = np.concatenate([rng.permutation(pool) for _ in range(repeats)])[:len(slots)]
+    return order
+
+
+def check_mix(info: DatasetInfo, frames: list[Frame], object_name: str, photoreal_mix: float) -> None:
+    """ConfigError unless every dataset shows the object and the frames have both kinds a mix asks for."""
+    for directory, objects in info.sources.items():
+        if object_name not in objects:
+            raise ConfigError(f"{directory} shows {', '.join(objects)}, not {object_name}",
+                              "train on datasets rendered from the model of the same object")
+    if not -1 <= photoreal_mix <= 1 or (photoreal_mix < 0 and photoreal_mix != -1):
+        raise ConfigError(f"photoreal_mix is a probability in 0..1, or -1 for the frames as they come; got "
+                          f"{photoreal_mix}", "set photoreal_mix to a value in 0..1")
+    photoreal = sum(f.photoreal for f in frames)
+    if photoreal_mix > 0 and not photoreal:
+        raise ConfigError(f"photoreal_mix is {photoreal_mix} but the training frames have no photoreal (Cycles) "
+                          "frames", "render some (dataset photoreal_frames: N) or set photoreal_mix: -1")
+    if 0 <= photoreal_mix < 1 and photoreal == len(frames):
+        raise ConfigError(f"photoreal_mix is {photoreal_mix} but every training frame is photoreal (no fast-path "
+                          "frames)", "add a dataset rendered with render.engine=raster, or set photoreal_mix: -1")
 
 
 def read_rgb(path: Path) -> np.ndarray:

@@ -25,7 +25,7 @@ from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, resolve_device
 from n2d_dope.config import TrainConfig
-from n2d_dope.data import DatasetInfo, DopeSamples, Frame, instances, open_datasets
+from n2d_dope.data import DatasetInfo, DopeSamples, Frame, check_mix, epoch_order, instances, open_datasets
 from n2d_dope.export import export_onnx, quantize_int8
 from n2d_dope.network import DopeNet, parameter_count
 
@@ -131,6 +131,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     initial = initial_weights(cfg)
     name = select_object(info, object_name)
     train_frames, held_frames = split_frames(info, name, cfg)
+    check_mix(info, train_frames, name, cfg.photoreal_mix)
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -170,7 +171,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         while pos["step"] < total and not stopped_early:
             epoch, first = divmod(pos["step"], steps_per_epoch)
             samples.set_epoch(epoch)
-            order = np.random.default_rng([cfg.seed, epoch]).permutation(len(samples))
+            order = epoch_order(train_frames, cfg.photoreal_mix, np.random.default_rng([cfg.seed, epoch]))
             epoch_losses = []
             for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
                 for group in opt.param_groups:
