@@ -17,6 +17,7 @@ from n2d_common.config import load_config
 from n2d_common.contracts import read_manifest
 from n2d_common.errors import Cancelled, ConfigError, ContractError
 from n2d_common.frames import make_T, project, rot_z
+from n2d_common.torch_utils import load_checkpoint
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.generate import generate_dataset
 from n2d_dope.config import DetectConfig, TrainConfig
@@ -157,7 +158,7 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
         train(dataset, out, cfg, progress=stop_after_two, cancel=cancel)
     partial = tmp_path / "dope.partial"
     assert (partial / "checkpoint.pt").is_file() and not out.exists()
-    assert torch.load(partial / "checkpoint.pt", weights_only=False)["position"]["step"] == 2
+    assert load_checkpoint(partial / "checkpoint.pt")["position"]["step"] == 2
     steps = []
     summary = train(dataset, out, cfg, progress=lambda p: steps.append(p.info.get("step")))
     assert [s for s in steps if s][0] == 3 and summary["steps"] == summary["planned_steps"] == 3
@@ -209,7 +210,7 @@ def test_fine_tune_on_two_datasets(dataset, tmp_path):
     assert focal == [pytest.approx(150), pytest.approx(300 * 1.5)]  # 0.5x whole frames; windows of 1.5x frames
     inputs = read_manifest(tmp_path / "tuned")["inputs"]
     assert {"dataset", "dataset_2", "init_model"} <= set(inputs)
-    weights = [torch.load(tmp_path / m / "checkpoint.pt", weights_only=False)["model"] for m in ("base", "tuned")]
+    weights = [load_checkpoint(tmp_path / m / "checkpoint.pt")["model"] for m in ("base", "tuned")]
     learned = [k for k in weights[0] if "running" not in k and "num_batches" not in k]
     assert max(float((weights[0][k] - weights[1][k]).abs().max()) for k in learned) < 1e-6
 

@@ -11,6 +11,7 @@ from torch.nn import functional
 
 from n2d_common.config import load_config
 from n2d_common.errors import Cancelled, ConfigError, N2DError
+from n2d_common.torch_utils import load_checkpoint
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.neus.encoding import HashGrid
@@ -194,12 +195,12 @@ def test_cancel_saves_and_a_rerun_resumes_from_that_step(session, tmp_path):
     with pytest.raises(Cancelled) as raised:
         train_neus(data.train, aabb, cfg, workdir=tmp_path, progress=stop_at_20, cancel=cancel)
     assert "resume from step 20" in raised.value.hint
-    assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 20
+    assert load_checkpoint(tmp_path / "neus.pt")["step"] == 20
     reports = []
     train_neus(data.train, aabb, cfg, workdir=tmp_path, progress=reports.append)
     assert reports[0].info["step"] == 20 and reports[0].message == "starting at step 20/60"
     assert [r.info["step"] for r in reports[1:]] == [30, 40, 50, 60]
-    assert torch.load(tmp_path / "neus.pt", weights_only=False)["step"] == 60
+    assert load_checkpoint(tmp_path / "neus.pt")["step"] == 60
     # another configuration does not resume that checkpoint
     reports.clear()
     train_neus(data.train, aabb, replace(cfg, steps=10), workdir=tmp_path, progress=reports.append)

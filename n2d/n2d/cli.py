@@ -412,7 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("dataset", help="render a domain-randomised, annotated dataset (BOP + DOPE) of models",
                        description="Render random scenes of the models (random floors, walls, distractors, lights, "
-                       "physics drops, optional in-hand gripper) with Cycles and write BOP train_pbr chunks (rgb, "
+                       "objects standing as captured or resting on a face, optional in-hand gripper) with Cycles, or "
+                       "with the fast rasterizer (--set render.engine=raster, ten times the frames per CPU-hour; "
+                       "photoreal_frames of them by Cycles), and write BOP train_pbr chunks (rgb, "
                        "depth, mask, mask_visib, scene_gt, scene_camera, scene_gt_info) with a DOPE JSON beside "
                        "each image, models/, camera.json and contact_sheet.png. Ctrl-C keeps finished frames; the "
                        "same command resumes. Seeded: the same config renders the same frames.")

@@ -87,7 +87,9 @@ class PipelineConfig:
     reconstruct: dict = field(default_factory=dict)
     """Overrides of reconstruct_node's config."""
     dataset: dict = field(default_factory=dict)
-    """Overrides of dataset_node's config, for both datasets."""
+    """Overrides of dataset_node's config for the training dataset."""
+    test_dataset: dict = field(default_factory=dict)
+    """Overrides of dataset_node's config for the held-out synthetic test set."""
     train: dict = field(default_factory=dict)
     """Overrides of the training preset."""
 
@@ -297,7 +299,8 @@ def _run_stage(stage: str, layout: RunLayout, object_name: str, cfg: PipelineCon
     if stage in ("dataset", "test_dataset"):
         test = stage == "test_dataset"
         return runner.dataset(out("reconstruct"), out(stage), cfg.test_frames if test else cfg.frames,
-                              cfg.seed + 1 if test else cfg.seed, cfg.dataset, progress=progress, cancel=cancel)
+                              cfg.seed + 1 if test else cfg.seed, cfg.test_dataset if test else cfg.dataset,
+                              progress=progress, cancel=cancel)
     if stage == "train":
         return runner.train(out("dataset"), out(stage), object_name, cfg.preset, cfg.train_overrides(),
                             progress=progress, cancel=cancel)

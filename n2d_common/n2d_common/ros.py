@@ -6,6 +6,7 @@ Only node modules import this; the stage libraries stay free of ROS.
 from __future__ import annotations
 
 import array
+import contextlib
 import os
 import threading
 import time
@@ -327,17 +328,24 @@ def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int =
         raise SystemExit(code)
 
 
-class SafeActionClient(ActionClient):
-    """rclpy's ActionClient, safe to call from a thread other than the executor's.
+RCLPY_SERIALISES_ACTION_REQUESTS = "_lock" in ActionClient.__init__.__code__.co_names
+"""Whether the installed rclpy has the fix of ros2/rclpy#1123 (PR #1308, backported to Jazzy in #1519): its
+ActionClient holds a lock around sending a request and handling the response."""
 
-    rclpy (Jazzy) registers a request's future only after sending the request; when the executor
-    thread handles the response in between, it is dropped ("Ignoring unexpected goal response")
-    and the future never completes. Sending and handling are serialised here.
+
+class SafeActionClient(ActionClient):
+    """rclpy's ActionClient, safe to call from a thread other than the executor's, and recording the goal status
+    the server publishes.
+
+    rclpy releases without the fix of ros2/rclpy#1123 (Jazzy's 7.1.5 among them) register a request's future only
+    after sending the request; when the executor thread handles the response in between, it is dropped
+    ("Ignoring unexpected goal response") and the future never completes. With such an rclpy, sending and
+    handling are serialised here; with a fixed one, rclpy's own lock does it.
     """
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._request_lock = threading.RLock()
+        self._request_lock = contextlib.nullcontext() if RCLPY_SERIALISES_ACTION_REQUESTS else threading.RLock()
         self.server_goals: dict[bytes, int] = {}
         """The last status the server published for each goal id it knows (GoalStatus.STATUS_*)."""
 

@@ -1,11 +1,15 @@
-"""Small PyTorch helpers shared by the stages that train networks (NeuS, DOPE): device choice, atomic saves."""
+"""Small PyTorch helpers shared by the stages that train networks (NeuS, DOPE): device choice, atomic saves, safe
+loads."""
 
 from __future__ import annotations
 
 import os
+import pickle
 from pathlib import Path
 
 import torch
+
+from n2d_common.errors import ContractError
 
 
 def resolve_device(name: str) -> torch.device:
@@ -22,3 +26,19 @@ def atomic_torch_save(obj: dict, path: str | Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """A checkpoint n2d wrote (tensors in dicts, lists and plain values), loaded without unpickling code: a file
+    holding any other object (which torch's pickle loader could run) is refused with a clear error."""
+    path = Path(path)
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ContractError(f"{path} holds objects other than tensors and plain values ({first[:200]}); n2d does "
+                            "not load such a file, its pickle could run code",
+                            "use a checkpoint written by n2d (or re-run the stage with --overwrite)") from None
+    except (RuntimeError, EOFError, OSError) as exc:
+        raise ContractError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {str(exc)[:200]})",
+                            "re-run the stage with --overwrite") from None

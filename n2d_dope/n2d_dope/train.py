@@ -23,7 +23,7 @@ from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, open_stage, stage_output
 from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
-from n2d_common.torch_utils import atomic_torch_save, resolve_device
+from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_dope.config import TrainConfig
 from n2d_dope.data import DatasetInfo, DopeSamples, Frame, check_mix, epoch_order, instances, open_datasets
 from n2d_dope.export import export_onnx, quantize_int8
@@ -114,7 +114,7 @@ def initial_weights(cfg: TrainConfig) -> dict | None:
         raise ConfigError(f"init_model {cfg.init_model} is a {model['backbone']} network with {model['stages']} "
                           f"stages, this training a {cfg.backbone} one with {cfg.stages}",
                           "set the same backbone and stages, or another init_model")
-    return torch.load(Path(cfg.init_model) / "checkpoint.pt", map_location="cpu", weights_only=False)["model"]
+    return load_checkpoint(Path(cfg.init_model) / "checkpoint.pt")["model"]
 
 
 def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: TrainConfig | None = None, *,
@@ -138,7 +138,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     identity = _identity(cfg, name, [Path(d) for d in datasets])
     with stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage:
         ckpt_path = stage.path / "checkpoint.pt"
-        state = torch.load(ckpt_path, map_location="cpu", weights_only=False) if ckpt_path.is_file() else None
+        state = load_checkpoint(ckpt_path) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
         fmt = memory_format(device)
         net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None and initial is None,

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional
 
-from n2d_common.torch_utils import atomic_torch_save, resolve_device
+from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_reconstruct.neus.encoding import HashGrid
 from n2d_reconstruct.neus.renderer import Normaliser, RenderSpec, box_intersect, camera_rays, pixel_grid, render_rays
 
@@ -264,7 +264,7 @@ class NeusField:
     @classmethod
     def load(cls, path: str | Path, device: str = "auto") -> NeusField:
         """Read a field written by `save` or a training checkpoint."""
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = load_checkpoint(path)
         net = NeusNetwork(FieldSpec(**state["field_spec"]))
         net.load_state_dict(state["network"])
         return cls(net, np.asarray(state["aabb"]), RenderSpec(**state["render_spec"]), device)

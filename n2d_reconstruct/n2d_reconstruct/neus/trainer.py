@@ -23,7 +23,7 @@ from torch.nn import functional
 
 from n2d_common.errors import Cancelled, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
-from n2d_common.torch_utils import atomic_torch_save, resolve_device
+from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_reconstruct.data import Views
 from n2d_reconstruct.neus.field import FieldSpec, NeusField, NeusNetwork
 from n2d_reconstruct.neus.renderer import (
@@ -383,7 +383,7 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
     identity = _identity(cfg, train, aabb)
     total = cfg.steps + cfg.texture_steps
     start = 0
-    state = torch.load(path, map_location=device, weights_only=False) if path.is_file() else None
+    state = load_checkpoint(path, device) if path.is_file() else None
     resumed = state is not None and state.get("identity") == identity
     if resumed:
         net.load_state_dict(state["network"])
