@@ -14,30 +14,39 @@ them per object in models_info.json:
 Everything here is in metres and radians; only `to_models_info` / `from_models_info` speak millimetres.
 
 Detection (`find_symmetries`). Every symmetry fixes the surface's area centroid c, so the candidates are
-rotations about axes through c: the principal axes of the surface's second moment, and, where two or three
-principal moments coincide (a body of revolution, a cube: the principal axes are then not unique), the
-directions from c to the convex hull's vertices, hull edge midpoints and large hull-facet and mesh-face
-normal clusters. Each axis is tried with turns of 2 pi / n (n = 2 .. `max_order`); a body of revolution is
-tried with turns by a few angles that are no simple fraction of a turn. A candidate S is scored on random
-area-weighted surface samples p_i: the distance of S p_i and of S^-1 p_i to the surface (nearest triangle,
-exact, among those of the nearest reference samples), and with a texture the colour difference between p_i
-and the surface point nearest its image. Its score is the largest of
+rotations about axes through c. Distinct principal moments of the surface allow only half turns about the
+principal axes; two equal moments (a body of revolution, a square prism) put any higher or continuous turn
+on the third principal axis and half turns perpendicular to it; three equal moments (a cube) leave the
+axes open, and the directions from c to the convex hull's vertices and edge midpoints and the large
+hull-facet and mesh-face normal clusters are tried too. Each axis is tried with turns of 2 pi / n
+(n = 2 .. `max_order`); a possible axis of revolution first with turns by a few angles that are no simple
+fraction of a turn. A candidate is scored on random area-weighted surface samples p_i: the distance of
+S p_i and S^-1 p_i to the surface (exact, to the nearest triangle), the angle between the turned normal at
+p_i and the normal where its image lands (face normals averaged over a patch of about 3 % of the diameter,
+so that a reconstruction's noisy small triangles do not count), and with a texture the colour difference
+between p_i and the surface point nearest its image (bilinear at its UV). Its score is the largest of
 
 - mean distance / (`tolerance` * diameter),
 - 99th percentile of the distances / (`tail_tolerance` * diameter): a handle, a spout, a small part the
   mean would average away,
-- fraction of samples whose normal differs from the surface normal at their image by more than
-  `normal_tolerance_deg` / `normal_fraction`: faceted, nearly round bodies (a hexagonal prism) stay within
-  a few % of the diameter of themselves under rotations that are no symmetry, but their faces turn away,
+- fraction of samples whose normal turned by more than `normal_tolerance_deg` / `normal_fraction`:
+  faceted, nearly round bodies (a hexagonal prism) stay within a few % of the diameter of themselves
+  under turns that are no symmetry, but their faces turn away,
 - fraction of samples whose colour differs by more than `color_tolerance` / `color_fraction`.
 
 A score <= 1 is a symmetry, > `ambiguous_band` (2) is none, and in between the mesh cannot tell:
 `AmbiguousSymmetry` is raised, naming the rotation, so that a person sets the symmetries by hand or changes
-the tolerance, rather than a guess deciding which poses count as equal. Candidates near the threshold have
-their axis refined first (rotation-only ICP about c, then snapped back to an exact 2 pi / n turn), since
-axes taken from a reconstructed mesh's features are only approximately right. The accepted rotations are
-closed into a group (composed until no new element appears), and every element of that group is scored
-too.
+the tolerance rather than a guess deciding which poses count as equal. An ambiguous turn that could not
+join the symmetries found (together they would turn by less than 2 pi / `max_order`: a 6-fold turn of a
+heptagonal prism, 8.6 degrees off its 7-fold one) is a near miss and raises nothing. Candidates just above
+the threshold have their axis refined first (rotation-only ICP about c, snapped back to an exact
+2 pi / n turn): axes taken from a reconstructed mesh's features are only approximately right. The accepted
+turns are closed into a group (composed until no new element appears), and every element of that group
+is scored as well.
+
+Limits: a mesh whose surface is rough at the scale of its triangles beyond about 0.5 % of the diameter
+(iid vertex noise) scatters its normals past the normal tolerance and loses its symmetries, or is
+ambiguous; prisms with 10 or more sides sit between discrete and continuous at the default tolerance.
 """
 
 from __future__ import annotations
@@ -81,12 +90,18 @@ _QUICK_SAMPLES = 400
 """Samples of the first, cheap look at a candidate; only candidates that pass it are scored on all samples."""
 _QUICK_REJECT = 1.25
 """A quick score above _QUICK_REJECT * ambiguous_band rejects a candidate without the full scoring."""
-_REFINE_ABOVE = 0.5
+_REFINE_ABOVE = 1.0
 """Candidates scoring between this and the quick-reject limit get their axis refined before the verdict."""
 _REFINE_SAMPLES = 1000
 _REFINE_ITERATIONS = 6
 _NEIGHBOURS = 4
 """Triangles of this many nearest reference samples are searched for the closest surface point."""
+_NORMAL_RADIUS = 0.03
+"""Surface normals are averaged over faces within this fraction of the diameter."""
+_NORMAL_NEIGHBOURS = 16
+"""... over at most this many faces at a time, ..."""
+_NORMAL_STEPS = 8
+"""... repeated at most this many times (fine meshes, whose neighbours lie closer)."""
 _REFERENCE_PER_SAMPLE = 4
 """Reference samples (for the nearest-triangle search) per scored sample, besides every face centroid."""
 _DEGENERATE = 0.1
@@ -96,11 +111,15 @@ _AXIS_MERGE_DEG = 3.0
 _SAME_ROTATION_DEG = 5.0
 """Two rotations closer than this are one group element (distinct elements of the groups tried differ by
 at least 2 pi / MAX_ORDER = 30 degrees)."""
+_NEAR_ELEMENT_DEG = 15.0
+"""A candidate this close to an element of the group found so far is that element or no symmetry (the
+element and it would differ by a turn of less than 30 degrees): it is not tried. Axes taken from a
+voxelised mesh's hull can be a few degrees off."""
 _AXES_PER_SOURCE = 16
 _MAX_AXES = 48
-_CONTINUOUS_ANGLES = (1.0, 2.2, 3.7)
-"""Turns (radians) a body of revolution must be symmetric under: no simple fraction of a full turn, so a
-polygonal prism of order <= MAX_ORDER fails at least one of them."""
+_CONTINUOUS_ANGLES = (0.81, 1.58, 2.76, 3.12)
+"""Turns (radians) a body of revolution must be symmetric under: for every n = 2 .. 12 one of them is at
+least 0.9 of the way from a multiple of 2 pi / n to the midpoint between two, so an n-sided prism fails."""
 
 
 class SymmetryError(ConfigError):
@@ -124,8 +143,9 @@ class Symmetries:
     continuous: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     """(unit axis, point on the axis in metres): symmetric under every rotation about that line."""
     residuals: list[dict] = field(default_factory=list)
-    """The candidates scored in full: kind, axis, angle_deg, mean / tail (fractions of the diameter),
-    color (fraction of samples), score and verdict, for the report."""
+    """The candidates scored in full, for the report: kind ("discrete" / "continuous"), axis, angle_deg,
+    mean and tail distance (fractions of the diameter), normal and color (fractions of the samples that
+    differ; color None without a texture), score and verdict."""
     diameter: float | None = None
     """The model's diameter in metres, when known."""
 
@@ -147,7 +167,7 @@ class _Surface:
     centre: np.ndarray
     diameter: float
     points: np.ndarray
-    normals: np.ndarray
+    sample_faces: np.ndarray
     face_normals: np.ndarray
     colors: np.ndarray | None
     tree: cKDTree
@@ -213,13 +233,14 @@ def find_symmetries(vertices: np.ndarray, faces: np.ndarray, *, face_uvs: np.nda
     colors = None
     if texture is not None:
         colors = _bilinear(texture, np.einsum("nk,nkc->nc", bary, face_uvs[face]))
-    face_normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    face_normals /= (2 * areas)[:, None]
-    surf = _Surface(triangles, centre, diameter, points, face_normals[face], face_normals, colors, cKDTree(reference),
-                    np.concatenate([ref_face, np.arange(len(triangles))]), face_uvs, texture)
+    reference_face = np.concatenate([ref_face, np.arange(len(triangles))])
+    tree = cKDTree(reference)
+    normals = _smooth_normals(triangles, areas, _NORMAL_RADIUS * diameter)
+    surf = _Surface(triangles, centre, diameter, points, face, normals, colors, tree, reference_face, face_uvs,
+                    texture)
 
     result = Symmetries(diameter=diameter)
-    axes = _candidate_axes(surf, moment, hull_points, triangles, areas, int(max_order))
+    axes = _candidate_axes(centre, moment, hull_points, triangles, areas, int(max_order))
     axis, pending_axes = _find_continuous(surf, limits, [a for a, _, continuous in axes if continuous], result)
     if axis is not None:
         if _continuous_residual(surf, limits, _perpendicular(axis))["score"] <= 1.0:
@@ -349,6 +370,34 @@ def _sample(areas: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np
     return face, bary
 
 
+def _smooth_normals(triangles: np.ndarray, areas: np.ndarray, radius: float) -> np.ndarray:
+    """Unit, unsigned normal per face, averaged over the faces around it out to about `radius`.
+
+    The face normals of a reconstructed mesh's small triangles scatter by tens of degrees; their mean over
+    a patch does not. The axes n n^T of the faces whose centroids lie within `radius` (at most
+    _NORMAL_NEIGHBOURS of them, weighted by area and (1 - (d / radius)^2)) are averaged, repeatedly where
+    those neighbours lie much closer than `radius` (fine meshes), and each face takes the principal
+    direction of its mean. The patches depend on the geometry only, so the images of a symmetry get the
+    same normals, and axes need no consistent face orientation. Large faces (a box of 12 triangles) keep
+    their own normals.
+    """
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]) / (2 * areas)[:, None]
+    k = min(_NORMAL_NEIGHBOURS, len(areas))
+    d, idx = cKDTree(triangles.mean(1)).query(triangles.mean(1), k=k, distance_upper_bound=radius)
+    d, idx = d.reshape(len(areas), k), idx.reshape(len(areas), k)
+    inside = np.isfinite(d)
+    idx = np.where(inside, idx, 0)
+    w = np.where(inside, areas[idx] * (1 - (np.where(inside, d, 0) / radius) ** 2), 0.0)
+    w /= w.sum(1, keepdims=True)
+    reach = float(np.median(np.where(inside[:, -1], d[:, -1], radius)))
+    steps = int(np.clip(np.ceil(2 * (radius / max(reach, 1e-12 * radius)) ** 2), 1, _NORMAL_STEPS))
+    tensor = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+    if k > 1:
+        for _ in range(steps):
+            tensor = np.einsum("fk,fkc->fc", w, tensor[idx])
+    return np.linalg.eigh(tensor.reshape(-1, 3, 3))[1][:, :, 2]
+
+
 def _bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """N x 3 bilinear samples of an H x W x 3 float texture at (u, v), v up, clamped at the border; the
     convention of n2d_common.raster.sample_bilinear (which needs torch for the rasterizer, this does not)."""
@@ -388,7 +437,8 @@ def _residual(surf: _Surface, limits: _Limits, R: np.ndarray, count: int) -> dic
     for Rk in (R,) if np.allclose(R, R.T, atol=1e-12) else (R, R.T):
         d, face, q = _closest(surf, X @ Rk.T + surf.centre)
         distances.append(d)
-        cos = np.abs(np.einsum("nc,nc->n", surf.normals[:count] @ Rk.T, surf.face_normals[face]))
+        own = surf.face_normals[surf.sample_faces[:count]]
+        cos = np.abs(np.einsum("nc,nc->n", own @ Rk.T, surf.face_normals[face]))
         turned.append(cos < limits.normal_cos)
         if surf.colors is not None:
             bary = trimesh.triangles.points_to_barycentric(surf.triangles[face], q)
@@ -485,7 +535,7 @@ def _find_discrete(surf: _Surface, limits: _Limits, axes: list[tuple[np.ndarray,
     for axis, orders, _ in axes:
         for n in orders:
             R = _axis_angle(axis, 2 * math.pi / n)
-            if _contains(group, R) or math.lcm(_order_about(group, axis), n) > max_order:
+            if _contains(group, R, _NEAR_ELEMENT_DEG) or math.lcm(_order_about(group, axis), n) > max_order:
                 continue
             R, res = _verdict(surf, limits, R, n, result)
             if res["score"] > limits.ambiguous_band:
@@ -557,7 +607,7 @@ def _close(generators: list[np.ndarray], max_order: int) -> list[np.ndarray] | N
     return group
 
 
-def _candidate_axes(surf: _Surface, moment: np.ndarray, hull: ConvexHull, triangles: np.ndarray,
+def _candidate_axes(centre: np.ndarray, moment: np.ndarray, hull: ConvexHull, triangles: np.ndarray,
                     areas: np.ndarray, max_order: int) -> list[tuple[np.ndarray, list[int], bool]]:
     """(axis, turn orders to try, try continuous) for every candidate axis, most likely first.
 
@@ -573,7 +623,7 @@ def _candidate_axes(surf: _Surface, moment: np.ndarray, hull: ConvexHull, triang
     all_orders = list(range(2, max_order + 1))
     if not (low or high):
         return [(a, [2], False) for a in principal]
-    features = _feature_directions(surf.centre, hull, triangles, areas)
+    features = _feature_directions(centre, hull, triangles, areas)
     if low and high:
         return [(a, all_orders, True) for a in _merge(principal + features)]
     main = evecs[:, 2] if low else evecs[:, 0]
@@ -678,8 +728,8 @@ def _angle_between(A: np.ndarray, B: np.ndarray) -> float:
     return math.acos(float(np.clip((np.trace(A.T @ B) - 1) / 2, -1.0, 1.0)))
 
 
-def _contains(rotations: list[np.ndarray], R: np.ndarray) -> bool:
-    return any(_angle_between(G, R) < math.radians(_SAME_ROTATION_DEG) for G in rotations)
+def _contains(rotations: list[np.ndarray], R: np.ndarray, within_deg: float = _SAME_ROTATION_DEG) -> bool:
+    return any(_angle_between(G, R) < math.radians(within_deg) for G in rotations)
 
 
 def _sorted_group(group: list[np.ndarray]) -> list[np.ndarray]:
@@ -759,6 +809,9 @@ def from_models_info(entry: dict) -> Symmetries:
            "symmetries_continuous a list of {\"axis\": [x, y, z], \"offset\": [x, y, z]} (mm)"
     if not isinstance(entry, dict):
         raise ContractError(f"a models_info entry must be a mapping, got {type(entry).__name__}", hint)
+    if entry and all(isinstance(k, str) and k.isdigit() and isinstance(v, dict) for k, v in entry.items()):
+        raise ContractError("from_models_info takes one object's entry, got the whole models_info.json "
+                            f"(objects {', '.join(entry)})", "pass models_info[obj_id]")
     sym = Symmetries()
     if "diameter" in entry:
         sym.diameter = _number(entry["diameter"], "diameter", hint) / 1000.0
