@@ -2,6 +2,7 @@
 reproducible across worker counts and resumes, no bpy; its shading against closed-form values; resting poses."""
 
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -15,12 +16,16 @@ import trimesh
 from n2d_common.config import load_config
 from n2d_common.contracts import read_manifest
 from n2d_common.errors import Cancelled, ConfigError
-from n2d_common.frames import make_T
+from n2d_common.frames import R_from_quat, make_T, quat_from_R
+from n2d_common.symmetry import canonical_pose, find_symmetries, to_models_info
 from n2d_dataset.check import check_dataset, frames
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.generate import generate_dataset
 from n2d_dataset.placement import rest_height, resting_poses, sample_orientation
 from n2d_dataset.shading import Body, Light, Material, Plane, RasterScene, Sky, corner_normals, render
+from n2d_dope.config import TrainConfig
+from n2d_dope.data import DopeSamples, canonical_instance, check_mix, epoch_order, open_dataset, open_datasets
+from n2d_dope.train import train
 from n2d_sim.objects import sample_object_dir
 
 MODELS = [sample_object_dir("box"), sample_object_dir("bottle")]
@@ -171,10 +176,6 @@ def test_resting_poses():
 def test_mixed_dataset_and_training_mix(tmp_path):
     """A raster dataset with photoreal_frames renders those frames with Cycles; training draws from the two kinds
     by photoreal_mix, and refuses a mix the frames cannot give, or a dataset of another object."""
-    from n2d_dope.config import TrainConfig
-    from n2d_dope.data import check_mix, epoch_order, open_dataset, open_datasets
-    from n2d_dope.train import train
-
     out = tmp_path / "mixed"
     cfg = small_config("frames=3", "photoreal_frames=1", "render.samples=2", "camera.width=160", "camera.height=120",
                        "camera.focal_px=150")
@@ -200,3 +201,45 @@ def test_mixed_dataset_and_training_mix(tmp_path):
         load_config(TrainConfig, overrides=["photoreal_mix=1.5"])
     assert not (tmp_path / "dope").exists() and not (tmp_path / "dope.partial").exists()
     assert open_datasets([out]).sources == {out: ["box"]}
+
+
+def _plain_box(tmp_path) -> Path:
+    """The sample box with its print painted over in one colour: its shape's 4 symmetries hold for its look too."""
+    model = tmp_path / "plain_box"
+    shutil.copytree(MODELS[0], model)
+    img = cv2.imread(str(model / "albedo.png"))
+    cv2.imwrite(str(model / "albedo.png"), np.full_like(img, 160))
+    mesh = trimesh.load(model / "mesh.obj", force="mesh", process=False)
+    sym = find_symmetries(mesh.vertices, mesh.faces, face_uvs=mesh.visual.uv[mesh.faces],
+                          texture=cv2.imread(str(model / "albedo.png"))[..., ::-1])
+    assert sym.group_order == 4
+    info = json.loads((model / "models_info.json").read_text())
+    info["1"].update(to_models_info(sym))
+    (model / "models_info.json").write_text(json.dumps(info))
+    return model
+
+
+def test_symmetry_aware_targets(tmp_path):
+    """A symmetric model's instances are labelled with the canonical of their equivalent poses: the same keypoints
+    whichever of the 4 poses the scene used; training samples take them."""
+    out = tmp_path / "ds"
+    generate_dataset([_plain_box(tmp_path)], out, small_config("frames=2", "scene.instances_per_model=[2,2]"))
+    info = open_dataset(out)
+    (name, poses), = info.symmetries.items()
+    assert len(poses) == 4
+    cuboid = info.cuboid_points_m[name]
+    annotation = json.loads(info.frames[0].annotation.read_text())
+    intrinsics = annotation["camera_data"]["intrinsics"]
+    for obj in annotation["objects"]:
+        canonical = np.array(canonical_instance(obj, intrinsics, cuboid, poses)["projected_cuboid"])
+        T = make_T(R_from_quat(obj["quaternion_xyzw"]), np.array(obj["location"]) / 100.0)
+        for S in poses:
+            turned = {**obj, "quaternion_xyzw": quat_from_R(T[:3, :3] @ S[:3, :3]).tolist()}
+            np.testing.assert_allclose(canonical_instance(turned, intrinsics, cuboid, poses)["projected_cuboid"],
+                                       canonical, atol=1e-6)
+        T_canonical, _ = canonical_pose(T, poses)
+        assert np.trace(T_canonical[:3, :3]) >= max(np.trace(T[:3, :3] @ S[:3, :3]) for S in poses) - 1e-9
+    cfg = TrainConfig.preset("tiny")
+    plain = DopeSamples(info.frames, name, cfg, augment=False)
+    aware = DopeSamples(info.frames, name, cfg, augment=False, symmetric=(cuboid, poses))
+    assert aware[0][0].shape == plain[0][0].shape

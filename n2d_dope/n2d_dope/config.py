@@ -89,6 +89,9 @@ class TrainConfig:
     photoreal_mix: float = -1.0
     """Fraction of the training samples drawn from photoreal (Cycles) frames, the rest from fast-path (raster)
     frames, whatever their counts; -1: every frame once per epoch, as they come."""
+    symmetry_aware: bool = True
+    """For an object with symmetries (the dataset's models_info.json), label each instance with the canonical one of
+    its equivalent poses, so the corners a view cannot tell apart get one label, not several."""
     hidden_keypoints: bool = True
     """Also train keypoints hidden by other surfaces (DOPE does; PnP then has all 9 points under occlusion)."""
     min_visibility: float = 0.1

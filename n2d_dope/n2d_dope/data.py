@@ -16,6 +16,8 @@ import torch
 
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ConfigError, ContractError
+from n2d_common.frames import R_from_quat, make_T, project
+from n2d_common.symmetry import canonical_pose, from_models_info, symmetric_poses
 from n2d_dope.config import AugmentConfig, TrainConfig
 from n2d_dope.network import STRIDE
 from n2d_dope.targets import make_targets
@@ -52,6 +54,9 @@ class DatasetInfo:
     """Object name -> model directory."""
     sources: dict[Path, list[str]] = field(default_factory=dict)
     """Each dataset read -> the objects it shows."""
+    symmetries: dict[str, list[np.ndarray]] = field(default_factory=dict)
+    """Object name -> the 4 x 4 model-frame transforms it is symmetric under (identity first; from the dataset's
+    models_info.json), for the objects that have symmetries."""
 
 
 def open_dataset(directory: str | Path) -> DatasetInfo:
@@ -80,7 +85,22 @@ def open_dataset(directory: str | Path) -> DatasetInfo:
                             "generate the dataset with n2d dataset")
     return DatasetInfo(directory, frames, cuboids, list(extra["cuboid_order"]), float(camera["focal_px"]),
                        (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]),
-                       {directory: sorted(cuboids)})
+                       {directory: sorted(cuboids)}, _symmetries(directory, extra.get("models", {})))
+
+
+def _symmetries(directory: Path, obj_ids: dict[str, int]) -> dict[str, list[np.ndarray]]:
+    """The symmetric poses of each object of a dataset that has symmetries (models/models_info.json)."""
+    path = directory / "models" / "models_info.json"
+    if not path.is_file():
+        return {}
+    entries = json.loads(path.read_text())
+    out = {}
+    for name, obj_id in obj_ids.items():
+        if str(obj_id) in entries:
+            poses = symmetric_poses(from_models_info(entries[str(obj_id)]))
+            if len(poses) > 1:
+                out[name] = poses
+    return out
 
 
 def open_datasets(directories: list[str | Path]) -> DatasetInfo:
@@ -105,8 +125,13 @@ def open_datasets(directories: list[str | Path]) -> DatasetInfo:
                                   "train on datasets rendered from the same model of the object")
             cuboids[name] = cuboid
         models.update({k: v for k, v in info.models.items() if k not in models})
+    symmetries: dict[str, list[np.ndarray]] = {}
+    for info in infos:
+        for name, poses in info.symmetries.items():
+            symmetries.setdefault(name, poses)
     return DatasetInfo(first.directory, [f for info in infos for f in info.frames], cuboids, first.cuboid_order,
-                       first.focal_px, first.image_size, models, {d: o for i in infos for d, o in i.sources.items()})
+                       first.focal_px, first.image_size, models, {d: o for i in infos for d, o in i.sources.items()},
+                       symmetries)
 
 
 def epoch_order(frames: list[Frame], photoreal_mix: float, rng: np.random.Generator) -> np.ndarray:
@@ -158,6 +183,16 @@ def instances(annotation: dict, object_name: str, min_visibility: float) -> list
     """The DOPE entries of `object_name` in one frame's annotation, at least `min_visibility` visible."""
     return [o for o in annotation["objects"]
             if o["class"] == object_name and o.get("visibility", 1.0) >= min_visibility]
+
+
+def canonical_instance(obj: dict, intrinsics: dict, cuboid_m: np.ndarray, sym_poses: list[np.ndarray]) -> dict:
+    """A DOPE instance entry relabelled with the canonical of its symmetric poses: its projected cuboid is that of
+    T_cam_obj @ S for the S `canonical_pose` picks (location in cm, quaternion xyzw, as DOPE JSON stores them)."""
+    T = make_T(R_from_quat(np.array(obj["quaternion_xyzw"], float)), np.array(obj["location"], float) / 100.0)
+    T_canonical, _ = canonical_pose(T, sym_poses)
+    K = np.array([[intrinsics["fx"], 0.0, intrinsics["cx"]], [0.0, intrinsics["fy"], intrinsics["cy"]],
+                  [0.0, 0.0, 1.0]])
+    return {**obj, "projected_cuboid": project(K, T_canonical, cuboid_m).tolist()}
 
 
 def affine(image_size: tuple[int, int], input_size: tuple[int, int], rng: np.random.Generator | None,
@@ -214,8 +249,13 @@ class DopeSamples(torch.utils.data.Dataset):
     reproducible; call `set_epoch` before each epoch. Without it, frames are only fitted to the input size.
     """
 
-    def __init__(self, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool):
+    def __init__(self, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool,
+                 symmetric: tuple[np.ndarray, list[np.ndarray]] | None = None):
+        """`symmetric`: (the object's 9 x 3 cuboid keypoints, its symmetric poses) for symmetry-aware targets: each
+        instance is labelled with the canonical one of its equivalent poses (`canonical_pose`), so corners the
+        image cannot tell apart never get contradicting labels."""
         self.frames, self.object_name, self.cfg, self.augment = frames, object_name, cfg, augment
+        self.symmetric = symmetric
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -228,7 +268,10 @@ class DopeSamples(torch.utils.data.Dataset):
         cfg, aug = self.cfg, self.cfg.augment
         rng = np.random.default_rng([cfg.seed, self.epoch, index]) if self.augment else None
         frame = self.frames[index]
-        shown = instances(json.loads(frame.annotation.read_text()), self.object_name, cfg.min_visibility)
+        annotation = json.loads(frame.annotation.read_text())
+        shown = instances(annotation, self.object_name, cfg.min_visibility)
+        if self.symmetric is not None:
+            shown = [canonical_instance(o, annotation["camera_data"]["intrinsics"], *self.symmetric) for o in shown]
         rgb = read_rgb(frame.image)
         size = (rgb.shape[1], rgb.shape[0])
         centre = None

@@ -158,7 +158,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             atomic_torch_save({"model": net.state_dict(), "optimizer": opt.state_dict(),
                                "position": pos, "identity": identity}, ckpt_path)
 
-        samples = DopeSamples(train_frames, name, cfg, augment=True)
+        samples = DopeSamples(train_frames, name, cfg, augment=True, symmetric=symmetric_targets(info, name, cfg))
         eta, t_start, last_save = Eta(), time.monotonic() - pos["elapsed_s"], time.monotonic()
         limit_s = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
 
@@ -214,12 +214,19 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     return summary
 
 
+def symmetric_targets(info: DatasetInfo, name: str, cfg: TrainConfig) -> tuple[np.ndarray, list] | None:
+    """(cuboid keypoints, symmetric poses) of the object when training is symmetry-aware and it has symmetries."""
+    if not cfg.symmetry_aware or name not in info.symmetries:
+        return None
+    return info.cuboid_points_m[name], info.symmetries[name]
+
+
 def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: str, cfg: TrainConfig,
                   device: torch.device) -> float | None:
     """Mean DOPE loss of the network on un-augmented held-out frames."""
     if not frames:
         return None
-    samples = DopeSamples(frames, name, cfg, augment=False)
+    samples = DopeSamples(frames, name, cfg, augment=False, symmetric=symmetric_targets(info, name, cfg))
     losses = []
     with torch.no_grad():
         for _, (images, beliefs, affinities) in _batches(samples, np.arange(len(samples)), cfg.batch_size, 0):
@@ -255,6 +262,7 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
                                                                       cfg.input_size[1] / info.image_size[1])),
         "cuboid_order": info.cuboid_order,
         "cuboid_points_m": info.cuboid_points_m[name].tolist(),
+        "symmetry_aware": symmetric_targets(info, name, cfg) is not None,
         "model_frame": "the n2d model frame (bounding-box centre, Z up as it stood)",
         "pose": "T_cam_obj: object frame -> OpenCV camera frame, metres",
         "model_dir": info.models.get(name, ""),

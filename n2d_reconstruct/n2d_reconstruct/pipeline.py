@@ -26,6 +26,7 @@ from n2d_common.contracts import atomic_write_json, stage_output
 from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_common.symmetry import Symmetries, find_symmetries, to_models_info
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.denoise import DenoiseConfig, denoise
 from n2d_reconstruct.export import object_frame, write_model
@@ -36,12 +37,12 @@ from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.planes import PlanesConfig, flatten_planes
 from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
-from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_views, unwrap
+from n2d_reconstruct.texture import TextureConfig, TexturedMesh, bake_from_function, bake_from_views, unwrap
 
 PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.07,
-                   "planes": 0.02, "texture": 0.25, "export": 0.05, "report": 0.15},
+                   "planes": 0.02, "texture": 0.24, "symmetry": 0.01, "export": 0.05, "report": 0.15},
           "neus": {"load": 0.01, "geometry": 0.83, "mesh": 0.03, "fair": 0.01, "hull": 0.005, "denoise": 0.005,
-                   "planes": 0.005, "texture": 0.045, "export": 0.01, "report": 0.05}}
+                   "planes": 0.005, "texture": 0.04, "symmetry": 0.005, "export": 0.01, "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -59,6 +60,10 @@ class ReconstructConfig:
     """Name of the object (written into the model files and the manifest)."""
     holdout_every: int = 8
     """Every n-th view is held out of reconstruction and used to measure it (0: none)."""
+    symmetry: Literal["auto", "none"] = "auto"
+    """auto: detect the model's symmetries (rotations mapping its shape and texture onto itself) and write them in
+    models_info.json, as BOP does; a model whose symmetry cannot be decided stops the reconstruction with a clear
+    error before anything is written. none: write no symmetries (the model is treated as asymmetric)."""
     min_views: int = 8
     """Sessions with fewer views are refused."""
     fscore_threshold_m: float = 0.001
@@ -85,6 +90,13 @@ class ReconstructConfig:
             raise ValueError("holdout_every must be 0 (none) or >= 2")
         if self.min_views < 3:
             raise ValueError("min_views must be >= 3")
+
+
+def _symmetries(tm: TexturedMesh, cfg: ReconstructConfig, progress=None) -> Symmetries:
+    """The symmetries of the textured model in its object frame (none when cfg.symmetry is none)."""
+    if cfg.symmetry == "none":
+        return Symmetries([], [])
+    return find_symmetries(tm.vertices, tm.faces, face_uvs=tm.uvs[tm.faces], texture=tm.albedo)
 
 
 class _Phases:
@@ -209,13 +221,18 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
                                      _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
-        info = phases.run("export", lambda progress: write_model(writer.path, tm.transformed(inv_T(T_turntable_obj)),
-                                                                 cfg.object_name))
+        tm = tm.transformed(inv_T(T_turntable_obj))
+        symmetries = phases.run("symmetry", _symmetries, tm, cfg)
+        info = phases.run("export", lambda progress: write_model(writer.path, tm, cfg.object_name,
+                                                                 to_models_info(symmetries)))
         report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
         report["refine"] = refined
         report["fair"] = faired
         report["hull"] = pulled
         report["planes"] = flattened
+        report["symmetry"] = {"mode": cfg.symmetry,
+                              "group_order": None if symmetries.continuous else symmetries.group_order,
+                              "discrete": len(symmetries.discrete), "continuous": len(symmetries.continuous)}
         report["timings_s"] = phases.times | {"total": round(sum(phases.times.values()), 2)}
         report["model"] = {"faces": len(tm.faces), "vertices": len(tm.vertices), "watertight": mesh.is_watertight,
                            "diameter_mm": info["diameter"],
