@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from n2d_common.contracts import atomic_write_bytes, atomic_write_text, read_manifest, write_manifest
 from n2d_common.errors import ConfigError
@@ -69,8 +70,8 @@ class _MeshBuilder:
     def positions(self) -> np.ndarray:
         return np.array(list(self.v), dtype=float)
 
-    def obj_text(self, name: str) -> str:
-        lines = [f"# n2d sample object '{name}': metres, origin at the bounding-box centre, Z up",
+    def obj_text(self, name: str, label: str = "sample object") -> str:
+        lines = [f"# n2d {label} '{name}': metres, origin at the bounding-box centre, Z up",
                  "mtllib mesh.mtl", f"o {name}"]
         lines += [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in self.v]
         lines += [f"vt {u:.6f} {v:.6f}" for u, v in self.vt]
@@ -394,6 +395,8 @@ def _models_info(points_m: np.ndarray) -> dict:
     """BOP models_info entry (millimetres) of a model's vertices; no symmetries."""
     p = points_m * 1000
     unique = p[np.unique(np.round(p, 3), axis=0, return_index=True)[1]]
+    # The farthest pair are hull vertices: the same maximum, without an all-pairs matrix of a large mesh.
+    unique = unique[np.sort(ConvexHull(unique).vertices)]
     d = np.sqrt(((unique[:, None] - unique[None]) ** 2).sum(-1)).max()
     lo, hi = p.min(0), p.max(0)
     info = {"diameter": d}
@@ -409,31 +412,43 @@ def _png_bytes(rgb: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def generate_object(name: str, out_dir: str | Path) -> Path:
-    """Write the sample object `name` into `out_dir/<name>/` (files, then the manifest) and return it."""
-    if name not in _MAKERS:
-        raise ConfigError(f"unknown sample object {name!r}", f"choose one of {', '.join(SAMPLE_OBJECTS)}")
-    out = Path(out_dir) / name
+def write_object(out: str | Path, name: str, made: tuple[_MeshBuilder, np.ndarray, dict], *,
+                 source: str = "n2d_sim.objects", label: str = "sample object", info_extra: dict | None = None,
+                 extra: dict | None = None) -> Path:
+    """Write a maker's (mesh, albedo, material) as the model directory `out` (files, then the manifest).
+
+    `info_extra` is added to the models_info entry (BOP symmetries), `extra` to the manifest's extra; a material
+    "metallic" goes into the MTL as `Pm`.
+    """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    mesh, albedo, material = _MAKERS[name]()
-    atomic_write_text(out / "mesh.obj", mesh.obj_text(name))
+    mesh, albedo, material = made
+    atomic_write_text(out / "mesh.obj", mesh.obj_text(name, label))
+    metallic = [f"Pm {material['metallic']:.3f}"] if "metallic" in material else []
     atomic_write_text(out / "mesh.mtl", "\n".join([
-        f"# n2d sample object '{name}'", f"newmtl {name}", "Ka 1.000 1.000 1.000", "Kd 1.000 1.000 1.000",
+        f"# n2d {label} '{name}'", f"newmtl {name}", "Ka 1.000 1.000 1.000", "Kd 1.000 1.000 1.000",
         f"Ks {material['specular']:.3f} {material['specular']:.3f} {material['specular']:.3f}",
-        f"Ns {1000 * (1 - material['roughness']) ** 2:.1f}", f"Pr {material['roughness']:.3f}",
+        f"Ns {1000 * (1 - material['roughness']) ** 2:.1f}", f"Pr {material['roughness']:.3f}", *metallic,
         "illum 2", "map_Kd albedo.png", ""]))
     atomic_write_bytes(out / "albedo.png", _png_bytes(albedo))
-    info = _models_info(mesh.positions())
+    info = _models_info(mesh.positions()) | (info_extra or {})
     atomic_write_text(out / "models_info.json", json.dumps({"1": info}, indent=2) + "\n")
     config = {"name": name, "material": material}
-    extra = {"source": "n2d_sim.objects", "ground_truth": True, "faces": len(mesh.faces),
-             "units": "m", "frame": "bounding-box centre, Z up as it stands"}
+    extra = {"source": source, "ground_truth": True, "faces": len(mesh.faces),
+             "units": "m", "frame": "bounding-box centre, Z up as it stands"} | (extra or {})
     old = read_manifest(out)
     # Keep an equivalent manifest so that regenerating in place changes no byte (it holds a timestamp).
     if old is None or (old["kind"], old.get("complete"), old.get("config"), old.get("extra")) != (
             "model", True, config, extra):
         write_manifest(out, "model", config=config, extra=extra)
     return out
+
+
+def generate_object(name: str, out_dir: str | Path) -> Path:
+    """Write the sample object `name` into `out_dir/<name>/` (files, then the manifest) and return it."""
+    if name not in _MAKERS:
+        raise ConfigError(f"unknown sample object {name!r}", f"choose one of {', '.join(SAMPLE_OBJECTS)}")
+    return write_object(Path(out_dir) / name, name, _MAKERS[name]())
 
 
 def main(argv: list[str] | None = None) -> None:
