@@ -25,9 +25,10 @@ from n2d_common.errors import Cancelled, ContractError
 from n2d_common.frames import inv_T, make_T, project
 from n2d_common.images import contact_sheet, draw_axes, draw_cuboid, write_png
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
+from n2d_common.symmetry import from_models_info, symmetric_poses
 from n2d_dope.data import open_dataset, read_rgb
 from n2d_dope.infer import DopeModel
-from n2d_dope.metrics import add, add_s, summarize
+from n2d_dope.metrics import add, add_s, bop_recall, mspd, mspd_thresholds, mssd, mssd_thresholds, summarize
 
 MODEL_POINTS = 2000
 OVERLAYS = 12
@@ -42,6 +43,14 @@ def model_points(model_dir: Path, count: int = MODEL_POINTS) -> tuple[np.ndarray
     info = json.loads((model_dir / "models_info.json").read_text())
     entry = next(iter(info.values())) if "diameter" not in info else info
     return sample_surface(mesh.vertices, mesh.faces, count), float(entry["diameter"]) / 1000.0
+
+
+def model_symmetries(model_dir: Path) -> list[np.ndarray]:
+    """The 4 x 4 transforms the model is symmetric under (identity first; only it for an asymmetric model), from its
+    models_info.json."""
+    info = json.loads((model_dir / "models_info.json").read_text())
+    entry = next(iter(info.values())) if "diameter" not in info else info
+    return symmetric_poses(from_models_info(entry))
 
 
 def _ground_truth(frame, obj_id: int, min_visibility: float) -> list[np.ndarray]:
@@ -66,10 +75,15 @@ def _overlay(rgb: np.ndarray, K: np.ndarray, truths: list[np.ndarray], detection
 
 
 def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: float, name: str,
-           progress: ProgressFn, cancel: threading.Event | None) -> tuple[dict, list[np.ndarray]]:
+           progress: ProgressFn, cancel: threading.Event | None,
+           sym_poses: list[np.ndarray] | None = None) -> tuple[dict, list[np.ndarray]]:
     """Run the model over `items` ((rgb, K, true poses) per image), match each true instance to the detection
-    with the smallest ADD-S, and summarise; also returns overlays of up to OVERLAYS evenly spread images."""
+    with the smallest ADD-S, and summarise (ADD, ADD-S; BOP's MSSD and MSPD recall under the model's symmetries
+    `sym_poses`); also returns overlays of up to OVERLAYS evenly spread images."""
+    sym_poses = sym_poses or [np.eye(4)]
+    mssd_points = points[:: max(1, len(points) // 500)]  # MSSD / MSPD are maxima over the points: 500 suffice
     add_errors, adds_errors, network_s, post_s, overlays = [], [], [], [], []
+    mssd_errors, mspd_errors, width = [], [], 0
     false_detections = 0
     pick = set(np.linspace(0, total - 1, min(OVERLAYS, total)).round().astype(int).tolist())
     eta = Eta()
@@ -77,20 +91,22 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
         if cancel is not None and cancel.is_set():
             raise Cancelled("evaluation cancelled", "run it again")
         detections = model.detect(rgb, K)
+        width = rgb.shape[1]
         network_s.append(model.timing.network)
         post_s.append(model.timing.postprocess)
         used, frame_errors = set(), []
         for T in truths:
             scores = [(add_s(d.T_cam_obj, T, points), j) for j, d in enumerate(detections) if j not in used]
             if not scores:
-                add_errors.append(np.inf)
-                adds_errors.append(np.inf)
-                frame_errors.append(np.inf)
+                for errors in (add_errors, adds_errors, frame_errors, mssd_errors, mspd_errors):
+                    errors.append(np.inf)
                 continue
             err_s, j = min(scores)
             used.add(j)
             adds_errors.append(err_s)
             add_errors.append(add(detections[j].T_cam_obj, T, points))
+            mssd_errors.append(mssd(detections[j].T_cam_obj, T, mssd_points, sym_poses))
+            mspd_errors.append(mspd(detections[j].T_cam_obj, T, mssd_points, K, sym_poses))
             frame_errors.append(err_s)
         false_detections += sum(all(add_s(d.T_cam_obj, T, points) >= 0.1 * diameter for T in truths)
                                 for d in detections)
@@ -98,6 +114,9 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
             overlays.append(_overlay(rgb, K, truths, detections, model.cuboid_m, frame_errors))
         progress(Progress((i + 1) / total, f"evaluating {name}", eta((i + 1) / total), f"image {i + 1}/{total}"))
     result = summarize(add_errors, adds_errors, diameter)
+    result["mssd_recall"] = bop_recall(mssd_errors, mssd_thresholds(diameter))
+    result["mspd_recall"] = bop_recall(mspd_errors, mspd_thresholds(width or 640))
+    result["symmetries"] = len(sym_poses)
     result.update({"images": total, "precision": model.precision, "false_detections": false_detections,
                    "network_ms_mean": 1000 * float(np.mean(network_s)) if network_s else None,
                    "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None})
@@ -127,6 +146,7 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
         raise ContractError(f"{info.directory} does not show {model.name}", "evaluate on a dataset of that object")
     obj_id = manifest["extra"]["models"][model.name]
     points, diameter = model_points(info.directory / "models" / model.name)
+    sym_poses = model_symmetries(info.directory / "models" / model.name)
     frames = info.frames[:max_frames] if max_frames > 0 else info.frames
 
     def items():
@@ -135,7 +155,7 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
             K = np.array(camera["cam_K"], dtype=float).reshape(3, 3)
             yield read_rgb(frame.image), K, _ground_truth(frame, obj_id, min_visibility)
 
-    result, overlays = _score(model, items(), len(frames), points, diameter, name, progress, cancel)
+    result, overlays = _score(model, items(), len(frames), points, diameter, name, progress, cancel, sym_poses)
     result.update({"frames": len(frames), "dataset": str(info.directory), "min_visibility": min_visibility})
     _record(model_dir, name, result, overlays)
     return result
@@ -186,7 +206,8 @@ def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turnta
             rgb = read_rgb(image)
             yield (cv2.undistort(rgb, K, dist) if np.any(dist) else rgb), K, [T_cam_obj]
 
-    result, overlays = _score(model, items(), len(views), points, diameter, name, progress, cancel)
+    result, overlays = _score(model, items(), len(views), points, diameter, name, progress, cancel,
+                              model_symmetries(object_dir))
     result.update({"views": len(views), "session": str(Path(session_dir).absolute()),
                    "ground_truth": "board camera poses composed with T_turntable_obj"})
     _record(model_dir, name, result, overlays)
