@@ -12,7 +12,7 @@ cd "$(dirname "$(readlink -f "$0")")"
 ROOT=$PWD
 VENV=${N2D_VENV:-$ROOT/.venv}
 PYTHON=${PYTHON:-python3}
-PACKAGES=(n2d_common n2d_capture n2d_sim n2d_reconstruct n2d_dataset n2d_dope n2d)
+PACKAGES=(n2d_common n2d_blender n2d_capture n2d_sim n2d_reconstruct n2d_dataset n2d_dope n2d)
 say() { printf '\033[1m[install]\033[0m %s\n' "$*"; }
 
 # --- 1. system libraries: bpy's X/GL libraries, the interface build tools --------------------------

@@ -17,10 +17,11 @@ import time
 
 import numpy as np
 
-from n2d_capture.board import T_plate_board, board_pose, detect_board
+from n2d_capture.board import board_pose, detect_board
 from n2d_capture.calibration import calibrate
 from n2d_capture.turntable_frame import camera_pose, fit_turntable
 from n2d_common.config import apply_overrides, from_dict, to_dict
+from n2d_common.formats.board import T_plate_board
 from n2d_common.frames import inv_T
 from n2d_sim import world
 from n2d_sim.camera import SimCamera

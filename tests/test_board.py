@@ -21,9 +21,7 @@ import pytest
 from n2d_capture.board import (
     MIN_CORNERS,
     BoardDetection,
-    BoardSpec,
     CalibrationError,
-    board_image,
     board_pose,
     corners_well_spread,
     detect_board,
@@ -31,6 +29,7 @@ from n2d_capture.board import (
 from n2d_capture.board_print import POINTS_PER_M, write_board_print
 from n2d_capture.calibration import Intrinsics, calibrate
 from n2d_common.errors import ConfigError
+from n2d_common.formats.board import BoardSpec, board_image
 from n2d_sim import world
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig

@@ -10,7 +10,7 @@ from std_srvs.srv import SetBool
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
-from n2d_capture.session import read_session
+from n2d_common.formats.session import read_session
 from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Capture
 

@@ -12,8 +12,8 @@ from helpers import write_photos
 from n2d_capture.board import CalibrationError
 from n2d_capture.capture import CaptureConfig
 from n2d_capture.importer import import_photos
-from n2d_capture.session import read_session
 from n2d_capture.sfm import SfmConfig
+from n2d_common.formats.session import read_session
 from n2d_common.frames import inv_T, rot_z
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig

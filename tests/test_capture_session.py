@@ -9,11 +9,11 @@ import pytest
 
 from n2d_capture.capture import CaptureConfig, capture
 from n2d_capture.masks import iou
-from n2d_capture.session import read_session
 from n2d_capture.sweep import SweepConfig
 from n2d_capture.turntable import Turntable, TurntableConfig
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ContractError
+from n2d_common.formats.session import read_session
 from n2d_common.frames import inv_T, rot_z
 from n2d_common.images import read_png
 from n2d_sim.camera import SimCamera

@@ -24,8 +24,8 @@ def test_colcon_builds_all_packages(tmp_path):
     env = {**os.environ, "AMENT_PREFIX_PATH": str(venv), "CMAKE_PREFIX_PATH": str(venv)}
     listed = subprocess.run([str(venv / "bin" / "colcon"), "list", "--names-only"], cwd=tmp_path, env=env,
                             capture_output=True, text=True, check=True).stdout.split()
-    assert sorted(listed) == ["n2d", "n2d_capture", "n2d_common", "n2d_dataset", "n2d_dope", "n2d_interfaces",
-                              "n2d_reconstruct", "n2d_sim"]
+    assert sorted(listed) == ["n2d", "n2d_blender", "n2d_capture", "n2d_common", "n2d_dataset", "n2d_dope",
+                              "n2d_interfaces", "n2d_reconstruct", "n2d_sim"]
     build = subprocess.run([str(venv / "bin" / "colcon"), "build", "--cmake-args", "-G", "Ninja",
                             "-DBUILD_TESTING=OFF", f"-DPython3_EXECUTABLE={sys.executable}"],
                            cwd=tmp_path, env=env, capture_output=True, text=True)

@@ -14,8 +14,8 @@ from n2d_capture.board import CalibrationError
 from n2d_capture.capture import CaptureConfig
 from n2d_capture.importer import import_photos, load_intrinsics, read_angles
 from n2d_capture.masks import iou
-from n2d_capture.session import read_session
 from n2d_common.errors import ConfigError, ContractError
+from n2d_common.formats.session import read_session
 from n2d_common.frames import inv_T, rot_z
 from n2d_common.images import read_png
 from n2d_sim.camera import SimCamera

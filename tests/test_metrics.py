@@ -9,7 +9,8 @@ import pytest
 import trimesh
 from skimage.metrics import structural_similarity
 
-from n2d_reconstruct.metrics import chamfer, flip, fscore, mesh_distances, psnr, sample_surface, ssim
+from n2d_common.geometry import sample_surface
+from n2d_reconstruct.metrics import chamfer, flip, fscore, mesh_distances, psnr, ssim
 
 
 @pytest.fixture(scope="module")

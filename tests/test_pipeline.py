@@ -12,10 +12,10 @@ from std_srvs.srv import Trigger
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d.pipeline import PipelineConfig, run_pipeline
-from n2d_capture.session import read_session
 from n2d_common.config import to_dict
 from n2d_common.contracts import open_stage, write_manifest
 from n2d_common.errors import ConfigError, ContractError
+from n2d_common.formats.session import read_session
 from n2d_common.ros import background_node, wait_future
 from n2d_dope.config import TIMED_EPOCHS
 from n2d_interfaces.srv import PipelineStatus, StartPipeline

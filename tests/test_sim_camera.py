@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from n2d_capture.board import BoardSpec, T_plate_board, board_image
 from n2d_common.config import ConfigError, from_dict, to_dict
+from n2d_common.formats.board import BoardSpec, T_plate_board, board_image
 from n2d_common.frames import inv_T, project, transform_points
 from n2d_sim import world
 from n2d_sim.camera import SimCamera

@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from n2d_capture.board import CalibrationError, T_plate_board, board_pose, detect_board
+from n2d_capture.board import CalibrationError, board_pose, detect_board
 from n2d_capture.turntable_frame import TurntableFit, camera_pose, fit_turntable
+from n2d_common.formats.board import T_plate_board
 from n2d_common.frames import inv_T, make_T, rot_z
 from n2d_sim import world
 from n2d_sim.camera import SimCamera

@@ -108,8 +108,8 @@ def cmd_sim(args) -> int:
 
 
 def cmd_board(args) -> int:
-    from n2d_capture.board import BoardSpec
     from n2d_capture.board_print import write_board_print
+    from n2d_common.formats.board import BoardSpec
 
     spec = _config(BoardSpec, args)
     paths = write_board_print(spec, args.out, dpi=args.dpi)
@@ -151,9 +151,9 @@ def _capture_io(args, cancel, stack):
 
 def _capture_config(args):
     """CaptureConfig from --config / --set, with the board spec of --board (board.json of `n2d board`)."""
-    from n2d_capture.board import BoardSpec
     from n2d_capture.capture import CaptureConfig
     from n2d_common.config import read_mapping
+    from n2d_common.formats.board import BoardSpec
 
     cfg = _config(CaptureConfig, args)
     if args.board:

@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from n2d_capture.board import BoardSpec, board_image
 from n2d_common.contracts import atomic_write_bytes, atomic_write_json
+from n2d_common.formats.board import BoardSpec, board_image
 
 POINTS_PER_M = 72 / 0.0254
 """PDF user-space units (points) per metre."""

@@ -6,7 +6,7 @@ import time
 
 import cv2
 
-from n2d_capture.sweep import Frame
+from n2d_common.camera import Frame
 from n2d_common.errors import DeviceError
 
 BUFFERED_READ_S = 0.005

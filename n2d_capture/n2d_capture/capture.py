@@ -26,16 +26,17 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from n2d_capture.board import BoardSpec, CalibrationError, board_pose, detect_board
+from n2d_capture.board import CalibrationError, board_pose, detect_board
 from n2d_capture.calibration import Intrinsics, calibrate
 from n2d_capture.masks import MaskConfig, ViewGeometry, foreground_mask, foreground_mask_no_reference, write_mask
-from n2d_capture.session import transforms_json
 from n2d_capture.sfm import COLMAP_DIR, SfmConfig, sfm_poses
 from n2d_capture.sweep import FrameSource, Rotator, SweepConfig, read_sweep, run_sweep
 from n2d_capture.turntable_frame import camera_pose, fit_turntable
 from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, stage_output
 from n2d_common.errors import ContractError
+from n2d_common.formats.board import BoardSpec
+from n2d_common.formats.session import transforms_json
 from n2d_common.frames import inv_T
 from n2d_common.images import contact_sheet, draw_mask_outline, read_png, write_png
 from n2d_common.progress import Progress, ProgressFn, no_progress

@@ -48,7 +48,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from n2d_capture.board import BoardSpec, T_plate_board, board_image
+from n2d_common.formats.board import BoardSpec, T_plate_board, board_image
 from n2d_common.frames import rot_z
 from n2d_common.images import write_png
 

@@ -19,24 +19,11 @@ from typing import Protocol
 
 import numpy as np
 
+from n2d_common.camera import Frame
 from n2d_common.contracts import atomic_write_json
 from n2d_common.errors import Cancelled, ContractError
 from n2d_common.images import write_png
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
-
-
-@dataclass
-class Frame:
-    """One camera image."""
-
-    rgb: np.ndarray
-    """HxWx3 uint8."""
-    stamp_s: float
-    """When it was exposed (seconds, the clock of `time.time()`)."""
-    K: np.ndarray | None = None
-    """3x3 intrinsics when the source knows them (CameraInfo), else None."""
-    dist: np.ndarray | None = None
-    """Distortion coefficients (OpenCV order) when known."""
 
 
 class FrameSource(Protocol):

@@ -1,4 +1,5 @@
-"""Pictures people look at: contact sheets of frames with labels, mask outlines and overlays (RGB uint8)."""
+"""Pictures people look at (contact sheets of frames with labels, mask outlines and overlays, RGB uint8) and the
+colour helpers of the renderers (sRGB encoding, exposure, random colours, light temperatures)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,28 @@ from n2d_common.contracts import atomic_write_bytes
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     """The sRGB encoding (values in [0, 1]) of linear RGB in [0, 1]."""
     return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
+
+
+def srgb_to_linear(c) -> tuple[float, ...]:
+    """Linear values of sRGB-encoded colour components in [0, 1]."""
+    c = np.asarray(c, dtype=float)
+    return tuple(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
+
+
+def random_color(rng: np.random.Generator) -> tuple[float, ...]:
+    """A random linear colour, saturated or grey alike."""
+    hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0, 255), rng.uniform(20, 255)]]])
+    return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255)
+
+
+def kelvin_to_rgb(kelvin: float) -> tuple[float, float, float]:
+    """Approximate linear RGB (max 1) of a black body at `kelvin` (Tanner Helland's fit, 1000-40000 K)."""
+    t = np.clip(kelvin, 1000.0, 40000.0) / 100.0
+    r = 255.0 if t <= 66 else 329.698727446 * (t - 60) ** -0.1332047592
+    g = 99.4708025861 * np.log(t) - 161.1195681661 if t <= 66 else 288.1221695283 * (t - 60) ** -0.0755148492
+    b = 255.0 if t >= 66 else (0.0 if t <= 19 else 138.5177312231 * np.log(t - 10) - 305.0447927307)
+    rgb = np.array(srgb_to_linear(np.clip([r, g, b], 0, 255) / 255.0))
+    return tuple(float(v) for v in rgb / rgb.max())
 
 
 def auto_exposure(linear: np.ndarray, key: float = 0.18) -> float:

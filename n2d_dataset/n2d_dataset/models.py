@@ -14,7 +14,7 @@ import numpy as np
 
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ContractError
-from n2d_reconstruct.export import read_model_mesh
+from n2d_common.formats.model import read_model_mesh
 
 CUBOID_ORDER = ("front top right", "front top left", "front bottom left", "front bottom right",
                 "rear top right", "rear top left", "rear bottom left", "rear bottom right", "centroid")

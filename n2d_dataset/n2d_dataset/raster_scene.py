@@ -23,7 +23,8 @@ from n2d_dataset.models import Model
 from n2d_dataset.placement import RestingPose, rest_height, resting_poses, sample_orientation
 from n2d_dataset.poses import random_rotation
 from n2d_dataset.shading import Body, Light, Material, Plane, RasterScene, Sky, corner_normals
-from n2d_dataset.textures import kelvin_to_rgb, random_color, random_fiducial_sheet, random_image
+from n2d_common.images import kelvin_to_rgb, random_color
+from n2d_dataset.textures import random_fiducial_sheet, random_image
 
 FLOOR_HALF_M = 4.0
 """Half size of the floor square, metres (as the Cycles path)."""

@@ -24,8 +24,8 @@ from n2d_common.images import auto_exposure, to_srgb8
 from n2d_common.progress import Progress, ProgressFn
 from n2d_dataset import writer
 from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
-from n2d_dataset.bl import renderer
-from n2d_dataset.bl.camera import set_pose
+from n2d_blender import renderer
+from n2d_blender.camera import set_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import load_models
 from n2d_dataset.poses import sample_camera

@@ -14,13 +14,14 @@ import numpy as np
 from mathutils import Matrix
 
 from n2d_common.frames import make_T, rot_z
-from n2d_dataset.bl import lighting, materials, objects, physics
-from n2d_dataset.bl.camera import make_camera, world_pose
+from n2d_blender import lighting, materials, objects, physics
+from n2d_blender.camera import make_camera, world_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 from n2d_dataset.placement import resting_poses, sample_orientation
 from n2d_dataset.poses import random_rotation
-from n2d_dataset.textures import random_color, random_fiducial_sheet
+from n2d_common.images import random_color
+from n2d_dataset.textures import random_fiducial_sheet, random_image
 
 FLOOR_HALF_M = 4.0
 """Half size of the floor square, metres."""
@@ -39,6 +40,19 @@ class Instance:
 
     def T_world_obj(self) -> np.ndarray:
         return world_pose(self.obj)
+
+
+def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
+    """A random surface: plain, one of the procedural patterns, or a random image repeated over it."""
+    roughness, specular = rng.uniform(0.1, 1.0), rng.uniform(0.1, 0.8)
+    choice = rng.integers(0, len(materials.PATTERNS) + 2)
+    if choice == len(materials.PATTERNS):
+        return materials.principled(name, random_color(rng), roughness, specular, metallic=float(rng.random() < 0.15))[0]
+    if choice == len(materials.PATTERNS) + 1:
+        return materials.textured(name, materials.image(name, random_image(rng)), roughness, specular, coords="Object",
+                        scale=rng.uniform(1.0, 12.0))
+    kind = list(materials.PATTERNS)[choice]
+    return materials.pattern(name, kind, random_color(rng), random_color(rng), rng.uniform(2.0, 40.0), roughness, specular)[0]
 
 
 class SceneBuilder:
@@ -91,14 +105,14 @@ class SceneBuilder:
     def _room(self, rng: np.random.Generator) -> bpy.types.Object:
         h = FLOOR_HALF_M
         floor = objects.mesh_object("floor", [(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [(0, 1, 2, 3)])
-        materials.assign(floor, materials.random_material(rng, "floor"))
+        materials.assign(floor, random_material(rng, "floor"))
         if rng.random() < self.cfg.scene.walls:
             d = rng.uniform(0.5, 1.5)
             for i, (a, b) in enumerate((((-d, -h), (-d, h)), ((-h, -d), (h, -d)))):
                 (x0, y0), (x1, y1) = a, b
                 wall = objects.mesh_object(f"wall{i}", [(x0, y0, 0), (x1, y1, 0), (x1, y1, 3), (x0, y0, 3)],
                                            [(0, 1, 2, 3)])
-                materials.assign(wall, materials.random_material(rng, f"wall{i}"))
+                materials.assign(wall, random_material(rng, f"wall{i}"))
         return floor
 
     def _distractor(self, rng: np.random.Generator, i: int) -> bpy.types.Object:
@@ -106,7 +120,7 @@ class SceneBuilder:
         size = rng.uniform(lo, hi) * rng.uniform(0.3, 1.0, 3)
         size[rng.integers(3)] = max(size.max(), lo)
         obj = objects.primitive(f"distractor{i}", str(rng.choice(objects.PRIMITIVES)), size)
-        materials.assign(obj, materials.random_material(rng, f"distractor{i}"))
+        materials.assign(obj, random_material(rng, f"distractor{i}"))
         return obj
 
     def _sheet(self, rng: np.random.Generator, under: Instance) -> None:

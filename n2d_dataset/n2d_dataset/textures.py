@@ -1,33 +1,10 @@
-"""Random colours and pictures for domain randomisation, in plain numpy and OpenCV (no bpy): colours and light
-temperatures, noise-and-shapes images for
+"""Random pictures for domain randomisation, in plain numpy and OpenCV (no bpy): noise-and-shapes images for
 distractor and floor surfaces, and printed fiducial sheets (ChArUco boards, ArUco grids)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
-
-
-def srgb_to_linear(c) -> tuple[float, ...]:
-    """Linear values of sRGB-encoded colour components in [0, 1]."""
-    c = np.asarray(c, dtype=float)
-    return tuple(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
-
-
-def random_color(rng: np.random.Generator) -> tuple[float, ...]:
-    """A random linear colour, saturated or grey alike."""
-    hsv = np.uint8([[[rng.uniform(0, 180), rng.uniform(0, 255), rng.uniform(20, 255)]]])
-    return srgb_to_linear(cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255)
-
-
-def kelvin_to_rgb(kelvin: float) -> tuple[float, float, float]:
-    """Approximate linear RGB (max 1) of a black body at `kelvin` (Tanner Helland's fit, 1000-40000 K)."""
-    t = np.clip(kelvin, 1000.0, 40000.0) / 100.0
-    r = 255.0 if t <= 66 else 329.698727446 * (t - 60) ** -0.1332047592
-    g = 99.4708025861 * np.log(t) - 161.1195681661 if t <= 66 else 288.1221695283 * (t - 60) ** -0.0755148492
-    b = 255.0 if t >= 66 else (0.0 if t <= 19 else 138.5177312231 * np.log(t - 10) - 305.0447927307)
-    rgb = np.array(srgb_to_linear(np.clip([r, g, b], 0, 255) / 255.0))
-    return tuple(float(v) for v in rgb / rgb.max())
 
 
 def random_image(rng: np.random.Generator, size: int = 256) -> np.ndarray:

@@ -36,8 +36,8 @@ OVERLAYS = 12
 
 def model_points(model_dir: Path, count: int = MODEL_POINTS) -> tuple[np.ndarray, float]:
     """`count` points on the model's surface (metres, object frame) and its diameter (metres)."""
-    from n2d_reconstruct.export import read_model_mesh
-    from n2d_reconstruct.metrics import sample_surface
+    from n2d_common.formats.model import read_model_mesh
+    from n2d_common.geometry import sample_surface
 
     mesh = read_model_mesh(model_dir)
     info = json.loads((model_dir / "models_info.json").read_text())
@@ -164,7 +164,7 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
 def session_ground_truth(session_dir: str | Path, T_turntable_obj: np.ndarray) -> list[tuple]:
     """(image path, K, distortion, T_cam_obj) of every posed view of a capture session, for an object standing
     at `T_turntable_obj` on the plate."""
-    from n2d_capture.session import read_session
+    from n2d_common.formats.session import read_session
 
     session = read_session(session_dir)
     views = [(v.image, session.K, session.dist, inv_T(v.T_turntable_cam) @ T_turntable_obj)

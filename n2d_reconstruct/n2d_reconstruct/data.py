@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from n2d_capture.session import read_session
 from n2d_common.errors import ContractError
+from n2d_common.formats.session import read_session
 from n2d_common.frames import inv_T, transform_points
 from n2d_common.images import read_png
 

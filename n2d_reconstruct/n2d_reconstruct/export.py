@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from PIL import Image
-from scipy.spatial import ConvexHull
 
 from n2d_common.contracts import atomic_write_bytes, atomic_write_json, atomic_write_text
+from n2d_common.formats.model import models_info
 from n2d_common.frames import make_T
 from n2d_common.images import write_png
 from n2d_reconstruct.texture import TexturedMesh
@@ -28,23 +28,6 @@ GLTF_FROM_Z_UP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0
 def object_frame(vertices: np.ndarray) -> np.ndarray:
     """4 x 4 T_turntable_obj: the object frame at the bounding-box centre of turntable-frame `vertices`."""
     return make_T(np.eye(3), (vertices.min(0) + vertices.max(0)) / 2)
-
-
-def diameter(vertices: np.ndarray) -> float:
-    """Largest distance between two of the points (BOP's object diameter), in their unit."""
-    hull = vertices[ConvexHull(vertices).vertices]
-    return float(np.sqrt(((hull[:, None] - hull[None]) ** 2).sum(-1)).max())
-
-
-def models_info(vertices: np.ndarray, symmetries: dict | None = None) -> dict:
-    """BOP models_info entry of object-frame `vertices` (metres in, millimetres out)."""
-    mm = 1000.0 * vertices
-    lo, size = mm.min(0), mm.max(0) - mm.min(0)
-    info = {"diameter": round(diameter(mm), 4)}
-    info.update({f"min_{a}": round(float(v), 4) for a, v in zip("xyz", lo)})
-    info.update({f"size_{a}": round(float(v), 4) for a, v in zip("xyz", size)})
-    info.update(symmetries or {})
-    return info
 
 
 def obj_text(tm: TexturedMesh, name: str) -> str:
@@ -85,10 +68,3 @@ def write_model(directory: Path, tm: TexturedMesh, name: str, symmetries: dict |
     info = models_info(tm.vertices, symmetries)
     atomic_write_json(directory / "models_info.json", {"1": info})
     return info
-
-
-def read_model_mesh(directory: Path) -> trimesh.Trimesh:
-    """The mesh of a model directory (metres, object frame), without its texture."""
-    mesh = trimesh.load(directory / "mesh.obj", force="mesh", process=False)
-    return trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
-

@@ -16,6 +16,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from skimage.metrics import structural_similarity
 
+from n2d_common.geometry import sample_surface_faces
+
 SSIM_SIGMA = 1.5
 """Gaussian SSIM window (Wang et al. 2004): sigma 1.5 px, truncated at 3.5 sigma, 11 x 11 taps."""
 SSIM_RADIUS = int(3.5 * SSIM_SIGMA + 0.5)
@@ -70,11 +72,6 @@ def flip(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None
     return float(_masked(error[..., 0], mask).mean())
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """n x 3 points uniformly distributed over the surface (faces drawn by area)."""
-    return _sample(vertices, faces, n, np.random.default_rng(seed))[0]
-
-
 def chamfer(points_a: np.ndarray, points_b: np.ndarray) -> dict:
     """Symmetric chamfer distance between point sets, metres: {"a_to_b": mean over a of the distance to
     the nearest point of b, "b_to_a": the other way, "chamfer": mean of the two}."""
@@ -103,8 +100,8 @@ def mesh_distances(vertices_a: np.ndarray, faces_a: np.ndarray, vertices_b: np.n
     Returns the keys of `chamfer` and `fscore` (metres).
     """
     rng = np.random.default_rng(seed)
-    points_a, face_a = _sample(vertices_a, faces_a, n, rng)
-    points_b, face_b = _sample(vertices_b, faces_b, n, rng)
+    points_a, face_a = sample_surface_faces(vertices_a, faces_a, n, rng)
+    points_b, face_b = sample_surface_faces(vertices_b, faces_b, n, rng)
     a_to_b = _surface_distance(points_a, np.asarray(vertices_b, float)[faces_b], points_b, face_b)
     b_to_a = _surface_distance(points_b, np.asarray(vertices_a, float)[faces_a], points_a, face_a)
     return _chamfer(a_to_b, b_to_a) | _fscore(a_to_b, b_to_a, threshold)
@@ -133,18 +130,6 @@ def _masked(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     if selected.size == 0:
         raise ValueError("empty mask")
     return selected
-
-
-def _sample(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """(n x 3 uniform surface points, n face index of each)."""
-    tri = np.asarray(vertices, float)[faces]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(tri), size=n, p=area / area.sum())
-    r1, r2 = rng.random((2, n, 1))
-    s = np.sqrt(r1)
-    t = tri[face]
-    return (1 - s) * t[:, 0] + s * (1 - r2) * t[:, 1] + s * r2 * t[:, 2], face
 
 
 def _nearest(points: np.ndarray, targets: np.ndarray) -> np.ndarray:

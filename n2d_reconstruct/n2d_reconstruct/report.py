@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from n2d_common.formats.model import diameter
 from n2d_common.frames import inv_T, make_T, transform_points
 from n2d_common.images import contact_sheet, write_png
 from n2d_common.raster import rasterize, render_textured
 from n2d_reconstruct.data import Views
-from n2d_reconstruct.export import diameter
 from n2d_reconstruct.metrics import flip, mesh_distances, psnr, ssim
 from n2d_reconstruct.texture import TexturedMesh
 

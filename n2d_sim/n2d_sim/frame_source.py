@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from n2d_capture.sweep import Frame
+from n2d_common.camera import Frame
 from n2d_sim.camera import SimCamera, SimFrame
 
 

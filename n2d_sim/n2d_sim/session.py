@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from n2d_capture.session import TRUTH_DIR, transforms_json
 from n2d_common.contracts import atomic_write_json, stage_output
+from n2d_common.formats.session import TRUTH_DIR, transforms_json
 from n2d_common.frames import inv_T, rot_z
 from n2d_common.images import write_png
 from n2d_common.progress import Progress, ProgressFn, no_progress

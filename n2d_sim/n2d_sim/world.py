@@ -18,8 +18,8 @@ from typing import Literal
 
 import numpy as np
 
-from n2d_capture.board import BoardSpec, T_plate_board
 from n2d_common.errors import ContractError
+from n2d_common.formats.board import BoardSpec, T_plate_board
 from n2d_common.frames import inv_T, make_T, project, rot_z
 from n2d_sim.objects import SAMPLE_OBJECTS, sample_object_dir
 

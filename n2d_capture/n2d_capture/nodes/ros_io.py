@@ -16,7 +16,7 @@ import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
-from n2d_capture.sweep import Frame
+from n2d_common.camera import Frame
 from n2d_common.errors import Cancelled, DeviceError, N2DError
 from n2d_common.ros import LiveSubscription, SafeActionClient, call_action, image_rgb, stamp_seconds
 from n2d_interfaces.action import Rotate

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from n2d_dataset.bl.objects import link
+from n2d_blender.objects import link
 
 BL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Flips between OpenCV's and Blender's camera axes (its own inverse)."""

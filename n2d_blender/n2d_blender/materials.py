@@ -5,7 +5,6 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from n2d_dataset.textures import random_color, random_image
 
 
 def principled(name: str, color, roughness: float = 0.5, specular: float = 0.5, metallic: float = 0.0):
@@ -82,14 +81,3 @@ PATTERNS = {"noise": "ShaderNodeTexNoise", "voronoi": "ShaderNodeTexVoronoi", "w
 """Blender's procedural textures used by `pattern`."""
 
 
-def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
-    """A random surface: plain, one of the procedural patterns, or a random image repeated over it."""
-    roughness, specular = rng.uniform(0.1, 1.0), rng.uniform(0.1, 0.8)
-    choice = rng.integers(0, len(PATTERNS) + 2)
-    if choice == len(PATTERNS):
-        return principled(name, random_color(rng), roughness, specular, metallic=float(rng.random() < 0.15))[0]
-    if choice == len(PATTERNS) + 1:
-        return textured(name, image(name, random_image(rng)), roughness, specular, coords="Object",
-                        scale=rng.uniform(1.0, 12.0))
-    kind = list(PATTERNS)[choice]
-    return pattern(name, kind, random_color(rng), random_color(rng), rng.uniform(2.0, 40.0), roughness, specular)[0]

@@ -6,8 +6,8 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
-from n2d_dataset.bl.objects import link
-from n2d_dataset.textures import kelvin_to_rgb, random_color
+from n2d_blender.objects import link
+from n2d_common.images import kelvin_to_rgb, random_color
 
 
 def light(name: str, kind: str, power_w: float, location, target, color=(1.0, 1.0, 1.0),
