@@ -6,7 +6,6 @@ import bpy
 import numpy as np
 
 
-
 def principled(name: str, color, roughness: float = 0.5, specular: float = 0.5, metallic: float = 0.0):
     """A Principled BSDF material of linear `color`; returns (material, its node tree, the BSDF node)."""
     mat = bpy.data.materials.new(name)  # Blender 5 materials always have a node tree

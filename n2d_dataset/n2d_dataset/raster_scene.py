@@ -18,12 +18,12 @@ import trimesh
 
 from n2d_common.errors import ContractError
 from n2d_common.frames import make_T, rot_z
+from n2d_common.images import kelvin_to_rgb, random_color
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 from n2d_dataset.placement import RestingPose, rest_height, resting_poses, sample_orientation
 from n2d_dataset.poses import random_rotation
 from n2d_dataset.shading import Body, Light, Material, Plane, RasterScene, Sky, corner_normals
-from n2d_common.images import kelvin_to_rgb, random_color
 from n2d_dataset.textures import random_fiducial_sheet, random_image
 
 FLOOR_HALF_M = 4.0

@@ -17,6 +17,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from n2d_blender import renderer
+from n2d_blender.camera import set_pose
 from n2d_common.config import from_dict
 from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T, project
@@ -24,8 +26,6 @@ from n2d_common.images import auto_exposure, to_srgb8
 from n2d_common.progress import Progress, ProgressFn
 from n2d_dataset import writer
 from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
-from n2d_blender import renderer
-from n2d_blender.camera import set_pose
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import load_models
 from n2d_dataset.poses import sample_camera

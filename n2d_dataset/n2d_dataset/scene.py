@@ -13,14 +13,14 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from n2d_common.frames import make_T, rot_z
 from n2d_blender import lighting, materials, objects, physics
 from n2d_blender.camera import make_camera, world_pose
+from n2d_common.frames import make_T, rot_z
+from n2d_common.images import random_color
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 from n2d_dataset.placement import resting_poses, sample_orientation
 from n2d_dataset.poses import random_rotation
-from n2d_common.images import random_color
 from n2d_dataset.textures import random_fiducial_sheet, random_image
 
 FLOOR_HALF_M = 4.0
@@ -47,12 +47,14 @@ def random_material(rng: np.random.Generator, name: str) -> bpy.types.Material:
     roughness, specular = rng.uniform(0.1, 1.0), rng.uniform(0.1, 0.8)
     choice = rng.integers(0, len(materials.PATTERNS) + 2)
     if choice == len(materials.PATTERNS):
-        return materials.principled(name, random_color(rng), roughness, specular, metallic=float(rng.random() < 0.15))[0]
+        return materials.principled(name, random_color(rng), roughness, specular,
+                                    metallic=float(rng.random() < 0.15))[0]
     if choice == len(materials.PATTERNS) + 1:
         return materials.textured(name, materials.image(name, random_image(rng)), roughness, specular, coords="Object",
                         scale=rng.uniform(1.0, 12.0))
     kind = list(materials.PATTERNS)[choice]
-    return materials.pattern(name, kind, random_color(rng), random_color(rng), rng.uniform(2.0, 40.0), roughness, specular)[0]
+    return materials.pattern(name, kind, random_color(rng), random_color(rng), rng.uniform(2.0, 40.0), roughness,
+                             specular)[0]
 
 
 class SceneBuilder:

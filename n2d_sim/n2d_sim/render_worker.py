@@ -58,12 +58,11 @@ import cv2
 import numpy as np
 from mathutils import Vector
 
-from n2d_common.config import from_dict
-from n2d_common.formats.board import T_plate_board, board_image
-from n2d_common.images import to_srgb8
 from n2d_blender import materials, objects, renderer
 from n2d_blender.camera import make_camera, set_pose
-from n2d_common.images import srgb_to_linear
+from n2d_common.config import from_dict
+from n2d_common.formats.board import T_plate_board, board_image
+from n2d_common.images import srgb_to_linear, to_srgb8
 from n2d_sim.world import SimWorldConfig, T_turntable_cam, object_dir, object_info
 
 OBJECT_INDEX = 1
