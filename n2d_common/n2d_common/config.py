@@ -199,8 +199,11 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
 
 def load_config(cls: type[C], path: str | Path | None = None, overrides: list[str] | None = None,
                 base: C | None = None) -> C:
-    """The config `cls`: defaults (or `base`), then the file at `path`, then the `key=value` overrides."""
-    data = to_dict(base) if base is not None else {}
+    """The config `cls`: defaults (or `base`), then the file at `path`, then the `key=value` overrides.
+
+    Both go onto the complete defaults, so a nested default (a section's own default values, a mapping a
+    default_factory fills) keeps what an override does not name."""
+    data = to_dict(base if base is not None else cls())
     if path is not None:
         data = merge(data, read_mapping(path))
     data = apply_overrides(data, overrides or [])

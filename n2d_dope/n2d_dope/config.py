@@ -82,6 +82,9 @@ class TrainConfig:
     """Adam learning rate (DOPE: 1e-4 for the VGG network)."""
     lr_final_fraction: float = 0.1
     """The learning rate decays (cosine) to this fraction of `lr` over the run."""
+    peak_weight: float = 0.0
+    """Belief cells weigh 1 + peak_weight * their target in the loss (0: DOPE's plain MSE): the peaks, a few cells
+    among thousands, then drive the early steps (as CenterNet-style heatmap losses do)."""
     sigma_cells: float = 2.0
     """Standard deviation of the belief Gaussians, in output cells (8 input pixels)."""
     affinity_radius_cells: float = 2.5
@@ -128,6 +131,8 @@ class TrainConfig:
         if self.zoom <= 0 or (self.zoom != 1.0 and not self.crop):
             raise ValueError(f"zoom must be positive, and 1 without crop training (set zoom=1 with crop=false), "
                              f"got {self.zoom}")
+        if self.peak_weight < 0:
+            raise ValueError(f"peak_weight must be >= 0, got {self.peak_weight}")
         if self.lr <= 0 or self.sigma_cells <= 0 or self.affinity_radius_cells <= 0:
             raise ValueError("lr, sigma_cells and affinity_radius_cells must be positive")
         if not (0.0 <= self.photoreal_mix <= 1.0 or self.photoreal_mix == -1.0):

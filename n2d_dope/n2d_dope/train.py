@@ -61,10 +61,14 @@ def split_frames(info: DatasetInfo, object_name: str, cfg: TrainConfig) -> tuple
             [f for i, f in enumerate(shown) if i % every == every - 1])
 
 
-def dope_loss(outputs, beliefs: torch.Tensor, affinities: torch.Tensor) -> torch.Tensor:
-    """DOPE's loss: mean squared error of every stage's beliefs and affinities (intermediate supervision)."""
+def dope_loss(outputs, beliefs: torch.Tensor, affinities: torch.Tensor, peak_weight: float = 0.0) -> torch.Tensor:
+    """DOPE's loss: mean squared error of every stage's beliefs and affinities (intermediate supervision).
+
+    `peak_weight` > 0 weighs each belief cell by 1 + peak_weight * its target, so the few cells near a keypoint
+    count as much as the many empty ones and the peaks grow early in training (0: DOPE's plain MSE)."""
     out_beliefs, out_affinities = outputs
-    return sum(((b - beliefs) ** 2).mean() + ((a - affinities) ** 2).mean()
+    weight = 1.0 + peak_weight * beliefs if peak_weight else None
+    return sum(((b - beliefs) ** 2 * (weight if weight is not None else 1.0)).mean() + ((a - affinities) ** 2).mean()
                for b, a in zip(out_beliefs, out_affinities))
 
 
@@ -176,7 +180,8 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
                 for group in opt.param_groups:
                     group["lr"] = learning_rate(cfg, done(pos))
-                loss = dope_loss(net(images.to(device, memory_format=fmt)), beliefs.to(device), affinities.to(device))
+                loss = dope_loss(net(images.to(device, memory_format=fmt)), beliefs.to(device), affinities.to(device),
+                                 cfg.peak_weight)
                 if not torch.isfinite(loss):
                     raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
                                    "lower --set lr=..., or re-run with --overwrite")
