@@ -27,12 +27,13 @@ from n2d_common.images import read_png
 TINY = {
     "live_views": 2, "live_frames": 2,
     "pipeline.views": 12, "pipeline.test_views": 4, "pipeline.frames": 8, "pipeline.test_frames": 4,
-    "pipeline.preset": "tiny", "pipeline.train.epochs": 300,
-    "pipeline.train.augment": {"scale": [1.0, 1.0], "rotate_deg": 0.0, "shift": 0.0, "background_swap": 0.0,
-                               "noise": 0.0, "blur": 0.0},
+    "pipeline.preset": "tiny",
     "pipeline.reconstruct": {"mesh": {"voxel_m": 0.003, "target_faces": 3000}, "texture": {"size_px": 128},
                              "refine": {"enabled": False}},
     "pipeline.dataset": {"camera": {"width": 160, "height": 120, "focal_px": 150.0}, "render": {"samples": 2}},
+    "pipeline.test_dataset": {"camera": {"width": 160, "height": 120, "focal_px": 150.0}, "render": {"samples": 2}},
+    "pipeline.train": {"epochs": 300, "augment": {"scale": [1.0, 1.0], "rotate_deg": 0.0, "shift": 0.0,
+                                                  "background_swap": 0.0, "noise": 0.0, "blur": 0.0}},
 }
 KINDS = {"capture": "capture_session", "test_capture": "capture_session", "reconstruct": "model",
          "dataset": "dataset", "test_dataset": "dataset", "train": "dope_model"}

@@ -11,7 +11,7 @@ from std_srvs.srv import Trigger
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
-from n2d.pipeline import PipelineConfig, run_pipeline
+from n2d.pipeline import FAST_TRAIN, PipelineConfig, run_pipeline
 from n2d_common.config import to_dict
 from n2d_common.contracts import open_stage, write_manifest
 from n2d_common.errors import ConfigError, ContractError
@@ -39,8 +39,10 @@ def test_config_checks_and_test_sweep_angles():
     test = cfg.capture_overrides(test=True)["sweep"]
     assert test["views"] == 8 and math.isclose(test["start_angle_rad"], math.pi / 24)  # between the object views
     # train_minutes is how long training runs: the preset's epochs do not cut it short, given epochs still do
-    assert PipelineConfig().train_overrides() == {}
-    assert PipelineConfig(train_minutes=8.0).train_overrides() == {"epochs": TIMED_EPOCHS, "max_minutes": 8.0}
+    assert PipelineConfig(train_minutes=0.0, train={}).train_overrides() == {}
+    assert PipelineConfig().train_overrides() == {"epochs": TIMED_EPOCHS, **FAST_TRAIN,
+                                                  "max_minutes": PipelineConfig().train_minutes}
+    assert PipelineConfig(train_minutes=8.0, train={}).train_overrides() == {"epochs": TIMED_EPOCHS, "max_minutes": 8.0}
     assert PipelineConfig(train_minutes=8.0, train={"epochs": 300}).train_overrides()["epochs"] == 300
 
 

@@ -56,6 +56,16 @@ WEIGHTS = {EMPTY_PLATE: 2.0, "capture": 3.0, "test_capture": 1.0, "reconstruct":
 """Typical share of a run's time (the default demo on 2 cores), for the overall progress."""
 
 
+FAST_DATASET = {"render": {"engine": "raster"}, "camera": {"width": 320, "height": 320, "focal_px": 900.0}}
+"""The training set a run renders by default: the fast rasterizer, frames of 320 x 320 pixels at the focal length
+the network learns at (900 px: the lite preset's 1.5 x zoom of a 600 px camera), so every rendered pixel is one a
+240 x 240 training window can use and none is upsampled (docs/dope.md)."""
+FAST_TRAIN = {"crop": True, "zoom": 1.0, "stages": 1, "frozen_blocks": 6}
+"""Training overrides that go with FAST_DATASET: windows at the frames' own scale, and the cheaper network that
+learns most per CPU-minute (one belief/affinity stage, the trunk's first six blocks fixed: 0.42 s per step of 16
+windows on 2 cores instead of 0.98 s; docs/experiments.md)."""
+
+
 @dataclass
 class PipelineConfig:
     """One run of the pipeline. The stage nodes' own parameters are the defaults of everything not set here."""
@@ -69,15 +79,16 @@ class PipelineConfig:
     segment the object far worse (mean IoU 0.61 instead of 0.99 on the sample box, benchmarks/masks.py)."""
     method: Literal["fast", "neus"] = "fast"
     """Reconstruction method."""
-    frames: int = 400
-    """Frames of the training dataset."""
+    frames: int = 3000
+    """Frames of the training dataset (rendered by the fast path, `dataset` below; `dataset.photoreal_frames` of
+    them by Cycles)."""
     test_frames: int = 40
     """Frames of the held-out synthetic test set (rendered with seed + 1; 0: none)."""
     seed: int = 0
     """Seed of the training dataset."""
     preset: Literal["lite", "vgg", "tiny"] = "lite"
     """DOPE training preset (lite: CPU, vgg: DOPE as published, GPU; tiny: tests)."""
-    train_minutes: float = 0.0
+    train_minutes: float = 13.0
     """Minutes of training (the learning rate anneals over them; the preset's epochs no longer stop it, an epochs
     value in `train` still does); 0: the preset's epochs."""
     precisions: list[str] = field(default_factory=lambda: ["fp32", "int8"])
@@ -86,12 +97,12 @@ class PipelineConfig:
     """Overrides of capture_node's config for both sweeps (a mapping, like a Capture goal's config_yaml)."""
     reconstruct: dict = field(default_factory=dict)
     """Overrides of reconstruct_node's config."""
-    dataset: dict = field(default_factory=dict)
-    """Overrides of dataset_node's config for the training dataset."""
+    dataset: dict = field(default_factory=lambda: json.loads(json.dumps(FAST_DATASET)))
+    """Overrides of dataset_node's config for the training dataset (default: `FAST_DATASET`)."""
     test_dataset: dict = field(default_factory=dict)
     """Overrides of dataset_node's config for the held-out synthetic test set."""
-    train: dict = field(default_factory=dict)
-    """Overrides of the training preset."""
+    train: dict = field(default_factory=lambda: dict(FAST_TRAIN))
+    """Overrides of the training preset (default: `FAST_TRAIN`)."""
 
     def __post_init__(self):
         if self.views < 1 or self.test_views < 0:
