@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from n2d_common.frames import R_from_quat, make_T
+from n2d_common.frames import R_from_quat, make_T, project
 
 
 def look_at(eye, target, roll_rad: float = 0.0) -> np.ndarray:
@@ -42,3 +42,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = np.array([np.sqrt(1 - u1) * np.sin(2 * np.pi * u2), np.sqrt(1 - u1) * np.cos(2 * np.pi * u2),
                   np.sqrt(u1) * np.sin(2 * np.pi * u3), np.sqrt(u1) * np.cos(2 * np.pi * u3)])
     return R_from_quat(q)
+
+
+def in_view(K: np.ndarray, width: int, height: int, T_cam_obj: np.ndarray) -> bool:
+    """Whether an object's origin projects into the image, in front of the camera."""
+    (u, v), = project(K, T_cam_obj, np.zeros((1, 3)))
+    return T_cam_obj[2, 3] > 0 and 0 <= u < width and 0 <= v < height

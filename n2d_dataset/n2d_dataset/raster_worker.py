@@ -20,23 +20,16 @@ import torch
 
 from n2d_common.config import from_dict
 from n2d_common.errors import Cancelled
-from n2d_common.frames import inv_T, project
+from n2d_common.frames import inv_T
 from n2d_common.images import auto_exposure, to_srgb8
 from n2d_common.progress import Progress, ProgressFn
 from n2d_dataset import writer
-from n2d_dataset.annotate import annotate, bop_camera, bop_gt, dope_frame
+from n2d_dataset.annotate import annotate
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import load_models
-from n2d_dataset.poses import sample_camera
+from n2d_dataset.poses import in_view, sample_camera
 from n2d_dataset.raster_scene import Placed, RasterSceneBuilder
 from n2d_dataset.shading import Geometry, MergedMeshes, RasterScene, shade, trace
-
-
-def _in_view(cfg: DatasetConfig, T_world_cam: np.ndarray, focus: Placed) -> bool:
-    """Whether the focus object's centre projects into the image, in front of the camera."""
-    T = inv_T(T_world_cam) @ focus.T_world_obj()
-    (u, v), = project(cfg.camera.K(), T, np.zeros((1, 3)))
-    return T[2, 3] > 0 and 0 <= u < cfg.camera.width and 0 <= v < cfg.camera.height
 
 
 def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, scene: RasterScene, merged: MergedMeshes,
@@ -48,7 +41,7 @@ def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, scene: RasterSc
     for _ in range(c.max_tries):
         T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg,
                                     c.look_at_jitter_m, c.roll_deg)
-        if not _in_view(cfg, T_world_cam, focus):
+        if not in_view(K, c.width, c.height, inv_T(T_world_cam) @ focus.T_world_obj()):
             continue
         g = trace(scene, K, T_world_cam, c.width, c.height, merged)
         a = annotate(focus.model, focus.label, inv_T(T_world_cam) @ focus.T_world_obj(), K, g.index, g.depth)
@@ -71,13 +64,8 @@ def finish_image(linear: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
 
 
-def _rss_mb() -> float:
-    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def _render_frame(cfg: DatasetConfig, builder: RasterSceneBuilder, root: Path, frame: int) -> None:
     """Compose, render, annotate and write one frame (its record last)."""
-    K, w, h, r = cfg.camera.K(), cfg.camera.width, cfg.camera.height, cfg.render
     t0 = time.perf_counter()
     rng = np.random.default_rng([cfg.seed, frame])
     scene, placed, focus, in_hand = builder.build(rng)
@@ -87,20 +75,10 @@ def _render_frame(cfg: DatasetConfig, builder: RasterSceneBuilder, root: Path, f
     t2 = time.perf_counter()
     rgb = finish_image(shade(scene, g, merged), rng)
     t3 = time.perf_counter()
-    T_cam_world = inv_T(T_world_cam)
     record = {"frame": frame, "in_hand": in_hand, "renderer": "raster",
-              "scene_camera": bop_camera(K, T_cam_world, writer.DEPTH_SCALE)}
-    extra = {}
-    if cfg.annotate:
-        annotations = [annotate(p.model, p.label, T_cam_world @ p.T_world_obj(), K, g.index, g.depth) for p in placed]
-        _, im = writer.frame_location(frame, cfg.chunk_size)
-        extra = {"depth_m": g.depth, "annotations": annotations,
-                 "dope": dope_frame(annotations, K, w, h, writer.rgb_name(im, r.rgb_format), g.index, g.depth)}
-        record |= {"scene_gt": [bop_gt(a) for a in annotations], "scene_gt_info": [a.info for a in annotations]}
-    t4 = time.perf_counter()
-    record["rss_mb"] = round(_rss_mb(), 1)
-    record["seconds"] = {"compose": t1 - t0, "labels": t2 - t1, "render": t3 - t2, "annotate": t4 - t3}
-    writer.write_frame(root, frame, cfg.chunk_size, rgb, r.rgb_format, r.jpeg_quality, record, **extra)
+              "seconds": {"compose": t1 - t0, "labels": t2 - t1, "render": t3 - t2}}
+    writer.write_annotated_frame(root, cfg, frame, rgb, record, [(p.model, p.label, p.T_world_obj()) for p in placed],
+                                 T_world_cam, g.index, g.depth)
 
 
 def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from pathlib import Path
 
 import cv2
@@ -25,7 +26,9 @@ import numpy as np
 import trimesh
 
 from n2d_common.contracts import atomic_write_bytes, atomic_write_json
-from n2d_dataset.annotate import Annotation
+from n2d_common.frames import inv_T
+from n2d_common.process import rss_mb
+from n2d_dataset.annotate import Annotation, annotate, bop_camera, bop_gt, dope_frame
 from n2d_dataset.models import Model
 
 DEPTH_SCALE = 0.1
@@ -67,6 +70,30 @@ def write_frame(root: Path, frame: int, chunk_size: int, rgb: np.ndarray, fmt: s
     if dope is not None:
         atomic_write_json(base / "rgb" / f"{im:06d}.json", dope)
     atomic_write_json(root / RECORDS / f"{frame:06d}.json", record)
+
+
+def write_annotated_frame(root: Path, cfg, frame: int, rgb: np.ndarray, record: dict, targets: list,
+                          T_world_cam: np.ndarray, index: np.ndarray, depth_m: np.ndarray) -> None:
+    """Annotate one rendered frame from its labels (instance index and planar depth at pixel centres) and write it:
+    `record` (frame, in_hand, renderer, seconds of the phases so far) gains the BOP camera, ground truth and info,
+    the annotation's seconds and the worker's memory; `targets` are (model, label, T_world_obj) of every target
+    instance. Both renderers end their frames here."""
+    t0 = time.perf_counter()
+    K, r = cfg.camera.K(), cfg.render
+    T_cam_world = inv_T(T_world_cam)
+    record = {**record, "scene_camera": bop_camera(K, T_cam_world, DEPTH_SCALE)}
+    extra = {}
+    if cfg.annotate:
+        annotations = [annotate(model, label, T_cam_world @ T_world_obj, K, index, depth_m)
+                       for model, label, T_world_obj in targets]
+        _, im = frame_location(frame, cfg.chunk_size)
+        extra = {"depth_m": depth_m, "annotations": annotations,
+                 "dope": dope_frame(annotations, K, cfg.camera.width, cfg.camera.height, rgb_name(im, r.rgb_format),
+                                    index, depth_m)}
+        record |= {"scene_gt": [bop_gt(a) for a in annotations], "scene_gt_info": [a.info for a in annotations]}
+    record["rss_mb"] = round(rss_mb(), 1)
+    record["seconds"] = {**record.get("seconds", {}), "annotate": time.perf_counter() - t0}
+    write_frame(root, frame, cfg.chunk_size, rgb, r.rgb_format, r.jpeg_quality, record, **extra)
 
 
 def done_frames(root: Path) -> set[int]:
