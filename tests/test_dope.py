@@ -250,3 +250,12 @@ def test_cli_train_and_bad_input(dataset, tmp_path):
     with pytest.raises(ContractError):
         train(tmp_path / "missing", tmp_path / "z", TrainConfig.preset("tiny"))
     assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
+
+
+def test_degenerate_keypoints_give_no_pose():
+    """Keypoints that all but coincide (an undertrained network's collapsed corners) give no pose, not an error."""
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    cuboid = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)] + [[0, 0, 0]]) * 0.05
+    points = np.full((9, 2), 100.0) + np.random.default_rng(0).normal(0, 1e-7, (9, 2))
+    assert solve_pose(points, cuboid, K) is None and solve_pose(points, cuboid, K, inlier_px=10.0) is None
+

@@ -112,6 +112,15 @@ def solve_pose(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray,
     ok = np.isfinite(points_px).all(axis=1)
     if ok.sum() < 4:
         return None
+    try:
+        return _solve(points_px, cuboid_m, K, ok, inlier_px)
+    except cv2.error:  # degenerate keypoints (SQPnP refuses points that nearly coincide): no pose
+        return None
+
+
+def _solve(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray, ok: np.ndarray,
+           inlier_px: float) -> tuple[np.ndarray, float] | None:
+    """`solve_pose` on the keypoints `ok` selects (OpenCV may raise on degenerate ones)."""
     if inlier_px > 0 and ok.sum() >= 5:
         found, _, _, inliers = cv2.solvePnPRansac(cuboid_m[ok].astype(np.float64), points_px[ok].astype(np.float64),
                                                   K, None, iterationsCount=100, reprojectionError=inlier_px,
