@@ -83,16 +83,21 @@ def _fiducial_markers(gray: np.ndarray) -> int:
     return max(0 if ids is None else len(ids) for ids in found)
 
 
-def test_fiducial_sheets(dataset):
+@pytest.mark.parametrize("engine", ["cycles", "raster"])
+def test_fiducial_sheets(tmp_path, engine):
     """Fiducial sheets are real, decodable ChArUco boards and ArUco grids, and with scene.boards=1 they lie in
-    the rendered frames (the annotation test above runs on these same frames, so the sheets spoil no mask or
-    depth)."""
+    the rendered frames of both renderers, markers readable (the annotation tests run on frames with sheets, so
+    the sheets spoil no mask or depth)."""
     for seed in range(8):
         sheet = random_fiducial_sheet(np.random.default_rng(seed))
         assert _fiducial_markers(sheet) >= 8, seed
+    out = tmp_path / "sheets"
+    generate_dataset(MODELS[:1], out, load_config(DatasetConfig, overrides=[
+        "frames=2", "render.samples=4", "scene.boards=1.0", "scene.in_hand=0", "scene.distractors=[0,1]",
+        "scene.instances_per_model=[1,1]", f"render.engine={engine}"]))
     seen = [_fiducial_markers(cv2.imread(str(chunk / "rgb" / f"{im:06d}.jpg"), cv2.IMREAD_GRAYSCALE))
-            for chunk, im, *_ in frames(dataset)]
-    assert sum(seen) >= 1, seen  # 320x240 at 4 spp: few markers decode, but none would without the sheets
+            for chunk, im, *_ in frames(out)]
+    assert sum(seen) >= 1, seen
     with pytest.raises(ConfigError, match="scene.boards is a probability"):
         small_config("scene.boards=1.5")
 
