@@ -177,7 +177,8 @@ def parse_mapping(text: str, where: str = "config", json_text: bool = False) -> 
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
-    """Apply `a.b.c=value` strings (value parsed as YAML) onto a nested mapping, returning a new one."""
+    """Apply `a.b.c=value` strings (value parsed as YAML) onto a nested mapping, returning a new one; a mapping
+    value merges into the mapping already there."""
     out = json.loads(json.dumps(data, default=str))
     for item in overrides:
         key, sep, raw = item.partition("=")
@@ -193,7 +194,9 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override {item!r}: {part} is not a section")
-        node[parts[-1]] = value
+        # A mapping merges into the section it names (as config files and goal overrides do), a value replaces.
+        old = node.get(parts[-1])
+        node[parts[-1]] = merge(old, value) if isinstance(value, dict) and isinstance(old, dict) else value
     return out
 
 
