@@ -221,9 +221,9 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
                                      _on_plate(mesh, cfg))
         tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
         T_turntable_obj = object_frame(tm.vertices)
-        tm = tm.transformed(inv_T(T_turntable_obj))
-        symmetries = phases.run("symmetry", _symmetries, tm, cfg)
-        info = phases.run("export", lambda progress: write_model(writer.path, tm, cfg.object_name,
+        model = tm.transformed(inv_T(T_turntable_obj))  # the object frame; tm stays in the turntable frame
+        symmetries = phases.run("symmetry", _symmetries, model, cfg)
+        info = phases.run("export", lambda progress: write_model(writer.path, model, cfg.object_name,
                                                                  to_models_info(symmetries)))
         report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
         report["refine"] = refined
