@@ -137,7 +137,7 @@ def refine_corners_symmetric(gray: np.ndarray, corners_px: np.ndarray, radius: i
     margin = radius + 4  # window, the corner's own motion (<= 1.5 px) and central differences
     size = 2 * margin + 1
     # A little smoothing keeps bilinear interpolation from pulling corners towards whole pixels on
-    # very sharp images (0.045 -> 0.03 px); real optics blur more than this anyway.
+    # very sharp images; real optics blur more than this anyway.
     smooth = cv2.GaussianBlur(np.asarray(gray, dtype=np.float32), (0, 0), SYMMETRY_SMOOTHING_PX)
     padded = np.pad(smooth, margin + 1, mode="edge")
     q = np.asarray(corners_px, dtype=np.float64).copy()

@@ -10,10 +10,9 @@ and surroundings look the same and only the object and its shadows differ.
   3. GrabCut from the seed decides a band along its outline and the object's parts that look like
      what they hide (a white label over a white square, a dark base over the dark plate). Pixels of the
      band that show the reference's own pattern, only darker, are the plate in shadow and held as
-     background: left to GrabCut, a shadow beside a dark object joins it (box, 36 captured views: pixels
-     2 px or more outside the exact mask 1032 -> 86, IoU 0.9927 -> 0.9939; but 2 px or more inside
-     551 -> 805, as GrabCut's colour model now also holds shadowed white lines, like a white face seen
-     edge-on over them).
+     background: left to GrabCut, a shadow beside a dark object joins it (the price: GrabCut's colour
+     model then also holds shadowed white lines, so a white face seen edge-on over them loses a few
+     pixels).
   4. Edge: each pixel near the outline is the object when more than half of its colour is the
      object's, I = a F + (1 - a) B in linear light, B the reference there (shadowed and tinted like
      the view just outside, per channel: light bounced off the object tints the plate beside it) and
@@ -30,14 +29,10 @@ object to the projected cylinder above the plate, so the plate, the board and th
 never become foreground whatever the difference says, and darkening off the plate is not taken
 for a shadow. Masks are bool arrays; `write_mask` stores them as 0/255 PNGs.
 
-Measured with benchmarks/masks.py (simulated turntable in clutter, 640x480, 12 angles per sample
-object, independent sensor noise on view and reference; 2-core Xeon, other jobs running):
-  with the reference     box IoU mean 0.994 (min 0.992), bottle 0.990 (0.984); 110-230 ms/frame
-  without it             box 0.69 (0.58), bottle 0.80 (0.52); 0.8-0.9 s/frame. It fails where
-                         clutter right behind the object is taken for its top.
-The remaining error of the first is about a third of a pixel along the outline, so IoU falls with
-the image size (bottle 0.985 at 480x360, 0.98 at 320x240). A reference taken 0.3 degrees off the
-view's plate angle costs nothing, 1 degree about 0.01 IoU.
+benchmarks/masks.py measures both (IoU against the simulator's exact masks; benchmarks/RESULTS.md). Without
+a reference the masks fail where clutter right behind the object is taken for its top. With one, the
+remaining error is a fraction of a pixel along the outline, so IoU falls with the image size; a
+reference taken a fraction of a degree off the view's plate angle costs nothing.
 """
 
 from __future__ import annotations
@@ -57,7 +52,7 @@ REFERENCE_WIDTH_PX = 640
 
 EXPECTED_IOU = {"reference": 0.98, "no_reference": 0.60}
 """Lowest mean IoU against the exact mask per sample object that tests/test_masks.py accepts (sim,
-480x360, sensor noise on view and reference); see the measured values above."""
+480x360, sensor noise on view and reference); benchmarks/masks.py measures the values."""
 
 
 @dataclass

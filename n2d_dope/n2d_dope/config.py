@@ -66,9 +66,8 @@ class TrainConfig:
     zoom: float = 1.5
     """Crop training: windows are cut from the frames enlarged by this factor, so the model works at zoom times the
     dataset's focal length (`trained_focal_px`; detection resizes camera images to match). Objects then cover
-    zoom^2 more map cells, which places corners more precisely, and the network costs zoom^2 more per image.
-    Measured with an hour of CPU training from ImageNet on the same frames: zoom 1.5 on 240 x 240 windows 79.2 %
-    ADD-S on held-out frames, zoom 1 on 160 x 160 windows 66.9 % (before NHWC training doubled the steps)."""
+    zoom^2 more map cells, which places corners more precisely, and the network costs zoom^2 more per image
+    (docs/experiments.md compares zoom 1 and 1.5)."""
     init_model: str = ""
     """A DOPE model directory (from n2d train) whose weights this training starts from instead of ImageNet's:
     fine-tune a model on more or newer data (same backbone and stages). Empty: start from ImageNet."""
@@ -170,14 +169,12 @@ class DetectConfig:
     """Detections with fewer keypoints (centroid included) are dropped; PnP needs at least 4."""
     ransac_px: float = 10.0
     """Keypoints further than this (network-input pixels) from the pose that EPnP-RANSAC fits to most of them are
-    left out of PnP (0: always use all). Measured on held-out synthetic frames: ADD-S accuracy 55 -> 66 % (the
-    hour-trained light model), 27 -> 41 % (a 25-minute one). 10 for the zoom-1.5 preset, whose objects span 1.5x
-    the input pixels: ADD-S on a validation set (100 frames, not the test set) 80.9 / 84.7 / 84.7 / 85.5 / 84.7 %
-    at 6 / 8 / 10 / 12 / 16 px."""
+    left out of PnP (0: always use all): a corner the network put on the wrong side of the object would pull the
+    whole pose. Chosen on a validation set for networks working at 900 px (docs/experiments.md)."""
     min_inliers: int = 5
     """Detections whose pose lands fewer than this many of their keypoints within `ransac_px` are dropped (groups
-    of stray peaks give such poses). Measured on 100 held-out synthetic frames: detections matching no instance
-    90 -> 30, ADD-S accuracy unchanged (64.6 %), AUC 76.7 -> 71.9 (15 poses more than 10 % off go too)."""
+    of stray peaks give such poses); it removes most false detections at no cost in ADD-S accuracy
+    (docs/experiments.md)."""
     max_instances: int = 8
     """At most this many detections per object and image."""
     net_scale: float = 0.0

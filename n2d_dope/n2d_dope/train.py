@@ -97,8 +97,8 @@ def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: in
 
 
 def memory_format(device: torch.device) -> torch.memory_format:
-    """NHWC on the CPU: oneDNN runs the lite network's training step twice as fast in it (measured on 2 cores, 16
-    windows of 240 x 240: 1.3-1.4 s NCHW, 0.67-0.74 s NHWC; bf16 autocast gained nothing); CUDA keeps the default."""
+    """NHWC on the CPU, where oneDNN runs the lite network's training step about twice as fast in it
+    (docs/experiments.md); CUDA keeps the default."""
     return torch.channels_last if device.type == "cpu" else torch.contiguous_format
 
 

@@ -9,13 +9,12 @@ averaged. The depth with the best score wins where the score is high and the pat
 
 The found depths become displacement vectors (inward along each normal), and a robust membrane fitted
 to them moves every vertex: unfound vertices are interpolated, single bad matches damped. Fitting
-vectors, not depths along the normals, lets a roof's tilted sides settle onto the flat top under them
-(box: height error +3.7 % -> +1.7 %). Where nothing was found (a plain top under a roof's ridge),
-interpolated displacements leave a crest, since the ridge had further to go than its sides; there a
-bending term flattens the moved surface itself (`flatten`: box height error +1.7 -> +0.9 %). The
-silhouettes bound the search: each ray that grazes a mask's outline touches the object, so one hull
-vertex on it is held (`silhouette_anchors`); glossy objects, whose reflections match at depths inside
-a convex surface, keep their outline (bottle: Chamfer 1.82 -> 0.92 mm).
+vectors, not depths along the normals, lets a roof's tilted sides settle onto the flat top under them.
+Where nothing was found (a plain top under a roof's ridge), interpolated displacements leave a crest,
+since the ridge had further to go than its sides; there a bending term flattens the moved surface
+itself (`flatten`). The silhouettes bound the search: each ray that grazes a mask's outline touches
+the object, so one hull vertex on it is held (`silhouette_anchors`); glossy objects, whose reflections
+match at depths inside a convex surface, keep their outline. docs/experiments.md has the measurements.
 """
 
 from __future__ import annotations
@@ -50,8 +49,8 @@ class RefineConfig:
     the result is decimated to `mesh.target_faces` after it: a coarse mesh cannot follow the depths found (box,
     36 views of 320x240, 2000 faces: Chamfer 1.17 mm for the hull, 1.55 refined coarse, 0.60 refined fine)."""
     passes: int = 3
-    """Searches in a row, each from the surface (normals, visibility) the previous one left. Measured on the
-    demo's 24-view box: Chamfer 0.99 / 0.75 / 0.68 mm after 1 / 2 / 3 passes (0.55 mm with the plate cut held)."""
+    """Searches in a row, each from the surface (normals, visibility) the previous one left: each pass starts
+    closer, so finds more of the surface (docs/experiments.md)."""
     max_depth_m: float = 0.03
     """How far inside the hull the surface is searched, metres."""
     outward_m: float = 0.002
