@@ -19,10 +19,9 @@ import numpy as np
 import torch
 
 from n2d_common.config import from_dict
-from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.images import auto_exposure, to_srgb8
-from n2d_common.progress import Progress, ProgressFn
+from n2d_common.progress import ProgressFn
 from n2d_dataset import writer
 from n2d_dataset.annotate import annotate
 from n2d_dataset.config import DatasetConfig
@@ -88,12 +87,5 @@ def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[i
     cores = len(os.sched_getaffinity(0))
     torch.set_num_threads(cfg.render.threads or max(1, cores // cfg.worker_count("raster")))
     builder = RasterSceneBuilder(load_models(model_dirs), cfg)
-    for n, frame in enumerate(frames):
-        if cancel.is_set():
-            raise Cancelled(f"stopped after {n} of this worker's {len(frames)} frames",
-                            "re-run the same command to resume")
-        t0 = time.perf_counter()
-        _render_frame(cfg, builder, Path(root), frame)
-        progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
-                          info={"frame": frame, "seconds": time.perf_counter() - t0, "device": "cpu (raster)"}))
-    return {"frames": len(frames), "device": "cpu (raster)"}
+    return writer.render_each(frames, lambda frame: _render_frame(cfg, builder, Path(root), frame), "cpu (raster)",
+                              progress, cancel)

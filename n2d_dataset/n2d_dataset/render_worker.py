@@ -20,10 +20,9 @@ import numpy as np
 from n2d_blender import renderer
 from n2d_blender.camera import set_pose
 from n2d_common.config import from_dict
-from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.images import auto_exposure, to_srgb8
-from n2d_common.progress import Progress, ProgressFn
+from n2d_common.progress import ProgressFn
 from n2d_dataset import writer
 from n2d_dataset.annotate import annotate
 from n2d_dataset.config import DatasetConfig
@@ -92,12 +91,6 @@ def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[i
         r = cfg.render
         threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count("cycles"))
         device = renderer.setup(Path(tmp) / "frame.exr", r.samples, r.denoiser, r.max_bounces, r.device, threads)
-        for n, frame in enumerate(frames):
-            if cancel.is_set():
-                raise Cancelled(f"stopped after {n} of this worker's {len(frames)} frames",
-                                "re-run the same command to resume")
-            t0 = time.perf_counter()
-            _render_frame(cfg, builder, Path(root), frame)
-            progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
-                              info={"frame": frame, "seconds": time.perf_counter() - t0, "device": device}))
-    return {"frames": len(frames), "device": device}
+        summary = writer.render_each(frames, lambda frame: _render_frame(cfg, builder, Path(root), frame), device,
+                                     progress, cancel)
+    return summary

@@ -26,8 +26,10 @@ import numpy as np
 import trimesh
 
 from n2d_common.contracts import atomic_write_bytes, atomic_write_json
+from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.process import rss_mb
+from n2d_common.progress import Progress
 from n2d_dataset.annotate import Annotation, annotate, bop_camera, bop_gt, dope_frame
 from n2d_dataset.models import Model
 
@@ -94,6 +96,20 @@ def write_annotated_frame(root: Path, cfg, frame: int, rgb: np.ndarray, record: 
     record["rss_mb"] = round(rss_mb(), 1)
     record["seconds"] = {**record.get("seconds", {}), "annotate": time.perf_counter() - t0}
     write_frame(root, frame, cfg.chunk_size, rgb, r.rgb_format, r.jpeg_quality, record, **extra)
+
+
+def render_each(frames: list[int], render_one, device: str, progress, cancel) -> dict:
+    """A worker's frame loop: `render_one(frame)` for each frame, progress after each, Cancelled (with every
+    finished frame kept) as soon as `cancel` is set; returns the worker's summary."""
+    for n, frame in enumerate(frames):
+        if cancel.is_set():
+            raise Cancelled(f"stopped after {n} of this worker's {len(frames)} frames",
+                            "re-run the same command to resume")
+        t0 = time.perf_counter()
+        render_one(frame)
+        progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
+                          info={"frame": frame, "seconds": time.perf_counter() - t0, "device": device}))
+    return {"frames": len(frames), "device": device}
 
 
 def done_frames(root: Path) -> set[int]:
