@@ -170,10 +170,11 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     assert (out / "model_int8.onnx").stat().st_size < (out / "model.onnx").stat().st_size
 
     result = subprocess.run([sys.executable, "-m", "n2d.cli", "evaluate", str(out), str(dataset), "--precision",
-                             "int8"], capture_output=True, text=True)
+                             "int8", "--refine"], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert "ADD-S accuracy" in result.stdout
     evaluation = json.loads((out / "eval.json").read_text())["synthetic/int8"]
+    assert evaluation["refined"] and (out / "region_model.npz").is_file()  # the sparse model is kept with the network
     info = json.loads((dataset / "train_pbr" / "000000" / "scene_gt_info.json").read_text())
     visible = sum(i["visib_fract"] >= 0.25 for frame in info.values() for i in frame)
     assert evaluation["instances"] == visible and evaluation["frames"] == 4

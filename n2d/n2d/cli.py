@@ -302,24 +302,26 @@ def cmd_train(args) -> int:
 
 def cmd_evaluate(args) -> int:
     from n2d_common.contracts import read_manifest
+    from n2d_dope.config import RefineConfig
     from n2d_dope.evaluate import evaluate, evaluate_session
 
     test = read_manifest(args.test) if args.test.is_dir() else None
+    refine = RefineConfig() if args.refine else None
     if test is not None and test["kind"] == "capture_session":
         name = args.name or "turntable"
         r = evaluate_session(args.model, args.test, object_model_dir=args.object_model, name=name,
-                             precision=args.precision, progress=_progress_bar("evaluate"))
+                             precision=args.precision, refine=refine, progress=_progress_bar("evaluate"))
     else:
         name = args.name or "synthetic"
         r = evaluate(args.model, args.test, name=name, precision=args.precision, max_frames=args.frames,
-                     progress=_progress_bar("evaluate"))
+                     refine=refine, progress=_progress_bar("evaluate"))
     print(f"evaluate: {r['detected']}/{r['instances']} instances detected in {r['images']} images ({args.precision}), "
           f"{r['false_detections']} false detections")
     print(f"evaluate: ADD-S accuracy {100 * r['adds_accuracy_10pct']:.1f} %, ADD {100 * r['add_accuracy_10pct']:.1f} % "
           f"(10 % of the {r['diameter_mm']:.0f} mm diameter); AUC to 10 cm: ADD-S {100 * r['adds_auc_10cm']:.1f}, "
           f"ADD {100 * r['add_auc_10cm']:.1f}")
-    print(f"evaluate: network {r['network_ms_mean']:.1f} ms, post-processing {r['postprocess_ms_mean']:.1f} ms "
-          "per frame")
+    print(f"evaluate: network {r['network_ms_mean']:.1f} ms, post-processing {r['postprocess_ms_mean']:.1f} ms"
+          + (f", refinement {r['refine_ms_mean']:.1f} ms" if r.get("refined") else "") + " per frame")
     print(f"evaluate: wrote {args.model}/eval.json ({name}/{args.precision}) and eval_{name}.png")
     return 0
 
@@ -462,6 +464,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", help="name of this test set in eval.json (default: synthetic or turntable)")
     p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="which exported model to run")
     p.add_argument("--frames", type=int, default=0, help="dataset: evaluate only the first N frames (0: all)")
+    p.add_argument("--refine", action="store_true", help="refine each detected pose against the image with the "
+                   "object's model (region-based, as dope_node does) and drop poses that do not fit")
     p.add_argument("--object-model", type=Path, help="capture session: the object's model directory from n2d "
                    "reconstruct (records where it stood on the plate; default: the model DOPE was trained on)")
     p.set_defaults(func=cmd_evaluate)

@@ -190,3 +190,57 @@ class DetectConfig:
             raise ValueError(f"ransac_px must be >= 0, got {self.ransac_px}")
         if self.net_scale < 0:
             raise ValueError(f"net_scale must be >= 0, got {self.net_scale}")
+
+
+@dataclass
+class RefineConfig:
+    """Region-based refinement of a detected pose (`n2d_dope.pose_refine`)."""
+
+    scales: tuple[int, ...] = (6, 4, 2, 1)
+    """Pixels per line segment, coarse to fine: the first scale finds a contour up to `search_segments` x 6 px
+    away."""
+    iterations: int = 4
+    """Gauss-Newton steps per scale."""
+    search_segments: int = 5
+    """Candidate contour positions each side of the projected contour, in segments."""
+    window_segments: int = 4
+    """Segments each side of a candidate position that score it."""
+    bins: int = 16
+    """Histogram bins per colour channel."""
+    histogram_px: int = 24
+    """Pixels each side of the contour whose colours make the foreground and background histograms."""
+    histogram_gap_px: int = 1
+    """Pixels next to the projected contour left out of the histograms (where a pose still off puts the wrong
+    side's colours)."""
+    min_variance: float = 0.25
+    """Floor of a contour position's variance, in segments squared: no line is trusted beyond half a segment."""
+    damping: float = 0.05
+    """Damping of each step, as a share of each diagonal entry of the Gauss-Newton matrix (rotations and
+    translations have their own units, so the damping is relative to each)."""
+    min_lines: int = 20
+    """Fewer contour lines than this inside the image: no refinement, score 0."""
+    score_px: int = 4
+    """Pixels each side of the contour that the score looks at."""
+    texture_turns: bool = False
+    """Also refine the half turns of the cuboid and keep the pose whose rendered albedo agrees best with the image
+    (for detectors that confuse them; off: the networks n2d trains keep the turns apart, and the albedo of a lit
+    photo picks the wrong turn in about a quarter of cases, docs/experiments.md)."""
+    turn_score_margin: float = 0.05
+    """Turns whose silhouette score is this far below the best are not compared by texture."""
+    min_score: float = 0.6
+    """Refined poses whose silhouette score is below this are rejected as not believable."""
+    min_texture: float = 0.1
+    """Refined poses whose texture agreement (`texture_agreement`: local normalised cross-correlation with the
+    rendered albedo) is below this are rejected; not applied where the model is plain."""
+
+    def __post_init__(self):
+        if not self.scales or any(int(s) < 1 for s in self.scales):
+            raise ValueError(f"scales must be positive integers, got {self.scales}")
+        if self.iterations < 0 or self.search_segments < 1 or self.window_segments < 1:
+            raise ValueError("iterations must be >= 0, search_segments and window_segments >= 1")
+        if not 2 <= self.bins <= 64:
+            raise ValueError(f"bins must be in 2..64, got {self.bins}")
+        if not 0.0 <= self.min_score <= 1.0:
+            raise ValueError(f"min_score must be in 0..1, got {self.min_score}")
+        if not -1.0 <= self.min_texture <= 1.0:
+            raise ValueError(f"min_texture must be in -1..1, got {self.min_texture}")

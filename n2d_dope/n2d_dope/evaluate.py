@@ -26,6 +26,7 @@ from n2d_common.frames import inv_T, make_T, project
 from n2d_common.images import contact_sheet, draw_axes, draw_cuboid, write_png
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.symmetry import from_models_info, symmetric_poses
+from n2d_dope.config import RefineConfig
 from n2d_dope.data import open_dataset, read_rgb
 from n2d_dope.infer import DopeModel
 from n2d_dope.metrics import add, add_s, bop_recall, mspd, mspd_thresholds, mssd, mssd_thresholds, summarize
@@ -82,7 +83,7 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
     `sym_poses`); also returns overlays of up to OVERLAYS evenly spread images."""
     sym_poses = sym_poses or [np.eye(4)]
     mssd_points = points[:: max(1, len(points) // 500)]  # MSSD / MSPD are maxima over the points: 500 suffice
-    add_errors, adds_errors, network_s, post_s, overlays = [], [], [], [], []
+    add_errors, adds_errors, network_s, post_s, refine_s, overlays = [], [], [], [], [], []
     mssd_errors, mspd_errors, width = [], [], 0
     false_detections = 0
     pick = set(np.linspace(0, total - 1, min(OVERLAYS, total)).round().astype(int).tolist())
@@ -94,6 +95,7 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
         width = rgb.shape[1]
         network_s.append(model.timing.network)
         post_s.append(model.timing.postprocess)
+        refine_s.append(model.timing.refine)
         used, frame_errors = set(), []
         for T in truths:
             scores = [(add_s(d.T_cam_obj, T, points), j) for j, d in enumerate(detections) if j not in used]
@@ -119,7 +121,9 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
     result["symmetries"] = len(sym_poses)
     result.update({"images": total, "precision": model.precision, "false_detections": false_detections,
                    "network_ms_mean": 1000 * float(np.mean(network_s)) if network_s else None,
-                   "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None})
+                   "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None,
+                   "refined": model.refiner is not None,
+                   "refine_ms_mean": 1000 * float(np.mean(refine_s)) if refine_s and model.refiner else None})
     return result, overlays
 
 
@@ -134,17 +138,21 @@ def _record(model_dir: Path, name: str, result: dict, overlays: list[np.ndarray]
 
 
 def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "synthetic", precision: str = "fp32",
-             min_visibility: float = 0.25, max_frames: int = 0, progress: ProgressFn = no_progress,
-             cancel: threading.Event | None = None) -> dict:
-    """Evaluate the DOPE model on every frame of the dataset (or the first `max_frames`); returns the results
-    and records them in `<model_dir>/eval.json` under `<name>/<precision>`."""
+             min_visibility: float = 0.25, max_frames: int = 0, refine: RefineConfig | None = None,
+             progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
+    """Evaluate the DOPE model on every frame of the dataset (or the first `max_frames`), its poses refined
+    against the images with `refine` (against the dataset's copy of the model); returns the results and records
+    them in `<model_dir>/eval.json` under `<name>/<precision>`."""
     model_dir = Path(model_dir)
-    model = DopeModel(model_dir, precision=precision)
     info = open_dataset(dataset_dir)
+    model = DopeModel(model_dir, precision=precision)
     manifest = json.loads((info.directory / "n2d.json").read_text())
     if model.name not in manifest["extra"]["models"]:
         raise ContractError(f"{info.directory} does not show {model.name}", "evaluate on a dataset of that object")
     obj_id = manifest["extra"]["models"][model.name]
+    if refine is not None:
+        model = DopeModel(model_dir, precision=precision, refine=refine,
+                          object_dir=info.directory / "models" / model.name)
     points, diameter = model_points(info.directory / "models" / model.name)
     sym_poses = model_symmetries(info.directory / "models" / model.name)
     frames = info.frames[:max_frames] if max_frames > 0 else info.frames
@@ -176,7 +184,8 @@ def session_ground_truth(session_dir: str | Path, T_turntable_obj: np.ndarray) -
 
 def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turntable_obj: np.ndarray | None = None,
                      object_model_dir: str | Path | None = None, name: str = "turntable", precision: str = "fp32",
-                     progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
+                     refine: RefineConfig | None = None, progress: ProgressFn = no_progress,
+                     cancel: threading.Event | None = None) -> dict:
     """Evaluate on the views of a capture session: a real-world test set whose ground truth is the camera pose
     from the ChArUco board composed with where the object stands on the plate.
 
@@ -199,6 +208,8 @@ def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turnta
                                 "evaluate with the model n2d reconstruct made from this object's capture")
         T_turntable_obj = np.array(stored, dtype=float)
     views = session_ground_truth(session_dir, T_turntable_obj)
+    if refine is not None:
+        model = DopeModel(model_dir, precision=precision, refine=refine, object_dir=object_dir)
     points, diameter = model_points(object_dir)
 
     def items():

@@ -18,9 +18,10 @@ import numpy as np
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ConfigError
 from n2d_common.frames import project
-from n2d_dope.config import DetectConfig
+from n2d_dope.config import DetectConfig, RefineConfig
 from n2d_dope.export import INPUT, OUTPUTS, session
 from n2d_dope.network import INPUT_MULTIPLE
+from n2d_dope.pose_refine import Refiner, believable
 from n2d_dope.targets import CENTROID, to_image
 
 
@@ -38,6 +39,8 @@ class Detection:
     """9 x 2 image pixels of the keypoints found (DOPE order), NaN where none was found."""
     reprojection_px: float
     """RMS distance between the found keypoints and the cuboid projected with the pose."""
+    refine_score: float = float("nan")
+    """Agreement of the image with the refined pose's silhouette, 0..1 (NaN: not refined; `n2d_dope.pose_refine`)."""
 
 
 @dataclass
@@ -47,6 +50,7 @@ class Timing:
     preprocess: float = 0.0
     network: float = 0.0
     postprocess: float = 0.0
+    refine: float = 0.0
 
 
 def find_peaks(belief: np.ndarray, threshold: float, smooth_sigma: float) -> np.ndarray:
@@ -147,7 +151,7 @@ class DopeModel:
     """A DOPE model directory ready to detect its object: the ONNX session and the cuboid."""
 
     def __init__(self, directory: str | Path, *, precision: str = "fp32", cfg: DetectConfig | None = None,
-                 threads: int = 0):
+                 threads: int = 0, refine: RefineConfig | None = None, object_dir: str | Path | None = None):
         self.directory = Path(directory)
         open_stage(self.directory, "dope_model")
         self.config = json.loads((self.directory / "config.json").read_text())
@@ -160,6 +164,17 @@ class DopeModel:
         self.cuboid_m = np.array(self.config["cuboid_points_m"])
         self.session = session(self.directory / self.config["models"][precision], threads)
         self.timing = Timing()
+        self.refiner = None
+        if refine is not None:
+            self.refiner = Refiner(self.object_dir(object_dir), refine, cache_dir=self.directory)
+
+    def object_dir(self, given: str | Path | None = None) -> Path:
+        """The object's model directory: `given`, or the one the network was trained on."""
+        path = Path(given or self.config.get("model_dir") or "")
+        if not (path / "mesh.obj").is_file():
+            raise ConfigError(f"no object model at {path} for refinement",
+                              "pass the object's model directory (from n2d reconstruct), or turn refinement off")
+        return path
 
     def scale_for(self, K: np.ndarray) -> float:
         """Camera image -> network input resize factor (`cfg.net_scale`, or the trained focal over the camera's)."""
@@ -203,5 +218,18 @@ class DopeModel:
                     < self.cfg.min_inliers:
                 continue
             detections.append(Detection(self.name, T, float(np.nansum(group[:, 2]) / 9), points, error))
-        self.timing.postprocess = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        self.timing.postprocess = t1 - t0
+        if self.refiner is not None:
+            detections = [r for r in (self.refine(rgb, K, d) for d in detections) if r is not None]
+        self.timing.refine = time.perf_counter() - t1
         return detections
+
+    def refine(self, rgb: np.ndarray, K: np.ndarray, detection: Detection) -> Detection | None:
+        """The detection with its pose refined against the image, or None when the refined pose is not believable
+        (`n2d_dope.pose_refine.believable`)."""
+        refined = self.refiner(rgb, K, detection.T_cam_obj)
+        if not believable(refined, self.refiner.cfg):
+            return None
+        detection.T_cam_obj, detection.refine_score = refined.T_cam_obj, refined.score
+        return detection

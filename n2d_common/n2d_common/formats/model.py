@@ -35,3 +35,25 @@ def read_model_mesh(directory: Path) -> trimesh.Trimesh:
     """The mesh of a model directory (metres, object frame), without its texture."""
     mesh = trimesh.load(directory / "mesh.obj", force="mesh", process=False)
     return trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+
+
+def read_textured_model(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(V x 3 vertices in metres, F x 3 faces, F x 3 x 2 per-corner UVs (v up, as in OBJ), H x W x 3 uint8 albedo)
+    of a model directory's mesh.obj; a mesh without texture coordinates gets its material's plain colour."""
+    from n2d_common.errors import ContractError
+
+    path = Path(directory) / "mesh.obj"
+    if not path.is_file():
+        raise ContractError(f"{directory} has no mesh.obj", "give a model directory (from n2d reconstruct)")
+    mesh = trimesh.load(path, force="mesh", process=False)
+    faces = np.asarray(mesh.faces, np.int64)
+    if len(faces) == 0:
+        raise ContractError(f"{path} has no faces", "check the model's export")
+    uv = getattr(mesh.visual, "uv", None)
+    material = getattr(mesh.visual, "material", None)
+    image = getattr(material, "image", None)
+    if uv is None or len(uv) != len(mesh.vertices) or image is None:
+        colour = np.asarray(getattr(material, "diffuse", [200, 200, 200, 255]), float)[:3]
+        return (np.asarray(mesh.vertices, float), faces, np.zeros((len(faces), 3, 2)),
+                np.full((2, 2, 3), colour, np.uint8))
+    return np.asarray(mesh.vertices, float), faces, np.asarray(uv, float)[faces], np.asarray(image.convert("RGB"))
