@@ -144,8 +144,8 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
     against the images with `refine` (against the dataset's copy of the model); returns the results and records
     them in `<model_dir>/eval.json` under `<name>/<precision>`."""
     model_dir = Path(model_dir)
-    info = open_dataset(dataset_dir)
     model = DopeModel(model_dir, precision=precision)
+    info = open_dataset(dataset_dir)
     manifest = json.loads((info.directory / "n2d.json").read_text())
     if model.name not in manifest["extra"]["models"]:
         raise ContractError(f"{info.directory} does not show {model.name}", "evaluate on a dataset of that object")

@@ -41,6 +41,9 @@ class Detection:
     """RMS distance between the found keypoints and the cuboid projected with the pose."""
     refine_score: float = float("nan")
     """Agreement of the image with the refined pose's silhouette, 0..1 (NaN: not refined; `n2d_dope.pose_refine`)."""
+    source: str = "detected"
+    """Where the pose comes from: "detected" (the network, in this frame or, for a track just started, the last
+    one) or "tracked" (followed from the previous frame, `n2d_dope.track`)."""
 
 
 @dataclass
@@ -169,8 +172,10 @@ class DopeModel:
             self.refiner = Refiner(self.object_dir(object_dir), refine, cache_dir=self.directory)
 
     def object_dir(self, given: str | Path | None = None) -> Path:
-        """The object's model directory: `given`, or the one the network was trained on."""
-        path = Path(given or self.config.get("model_dir") or "")
+        """The object's model directory: `given`, the copy kept in the DOPE directory, or the one the network was
+        trained on."""
+        kept = self.config.get("object_model")
+        path = Path(given or (self.directory / kept if kept else self.config.get("model_dir")) or "")
         if not (path / "mesh.obj").is_file():
             raise ConfigError(f"no object model at {path} for refinement",
                               "pass the object's model directory (from n2d reconstruct), or turn refinement off")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -28,6 +29,7 @@ from n2d_dope.config import TrainConfig
 from n2d_dope.data import DatasetInfo, DopeSamples, Frame, check_mix, epoch_order, instances, open_datasets
 from n2d_dope.export import export_onnx, quantize_int8
 from n2d_dope.network import DopeNet, parameter_count
+from n2d_dope.pose_refine import Refiner
 
 INPUT_CONVENTION = "float32 N x 3 x H x W, RGB, 0..1 (normalisation is inside the network), H and W multiples of 16"
 _NOT_IDENTITY = ("device", "threads", "checkpoint_every_s", "max_minutes", "int8", "calibration_frames")
@@ -239,6 +241,22 @@ def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: st
     return float(np.mean(losses))
 
 
+OBJECT_MODEL = "object"
+"""Subdirectory of a DOPE model directory holding a copy of the object's model."""
+
+
+def _copy_object_model(info: DatasetInfo, name: str, out: Path) -> bool:
+    """Copy the object's model (the dataset's copy) into the DOPE directory, so that refinement and tracking have
+    it wherever the directory goes; False when the dataset has none."""
+    source = info.directory / "models" / name
+    if not (source / "mesh.obj").is_file():
+        return False
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(source, out)
+    return True
+
+
 def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_frames: list[Frame],
             held_frames: list[Frame], cfg: TrainConfig, pos: dict, total: int, device: torch.device,
             progress: ProgressFn) -> dict:
@@ -273,6 +291,10 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
         "model_dir": info.models.get(name, ""),
         "opset": cfg.opset,
     }
+    if _copy_object_model(info, name, directory / OBJECT_MODEL):
+        progress(Progress(0.98, "exporting", -1.0, "the object's sparse viewpoint model for refinement"))
+        Refiner(directory / OBJECT_MODEL, cache_dir=directory)
+        config["object_model"] = OBJECT_MODEL
     atomic_write_json(directory / "config.json", config)
     progress(Progress(1.0, "done", 0.0, f"{pos['step']} steps"))
     return {"object": name, "backbone": cfg.backbone, "steps": pos["step"], "planned_steps": total,

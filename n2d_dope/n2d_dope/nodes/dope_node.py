@@ -1,14 +1,23 @@
 """dope_node: live 6D poses of the trained objects in a camera stream (DOPE models on ONNX Runtime).
 
 Subscribes to any camera driver's `image_topic` + `camera_info_topic` (undistorted images) with live-video QoS:
-depth 1 (reliable, best effort for best-effort publishers), so a detector slower than the camera drops stale frames
+depth 1 (reliable, best effort for best-effort publishers), so a node slower than the camera drops stale frames
 instead of queueing them. The subscription callbacks only keep the newest image and CameraInfo; one worker thread
-runs every model on the newest image (at most `max_rate_hz` times a second) and publishes, under the node's
-namespace: `dope/pose_<object>` (PoseStamped, the best detection of each object, only when found), `dope/detections`
-(Detection3DArray, one per processed frame, empty when nothing was found), `dope/overlay` (rgb8, the fitted cuboids
-and object axes drawn) and `dope/latency_ms` (Float64, image stamp to published detections). Poses are in the
-camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when set. Every
-`log_period_s` it logs frames received, frames processed and the latency.
+processes the newest image (at most `max_rate_hz` times a second) and publishes.
+
+With `refine` (the default) every detected pose is refined against the image with the object's model and
+dropped when it does not fit (`n2d_dope.pose_refine`); with `track` (the default) each object is then followed
+from frame to frame by refinement (`n2d_dope.track`) while a second worker runs the network when an object is
+not tracked and every `redetect_frames` frames, so the poses keep the camera's rate. A DOPE directory without
+its object's model (trained by an older n2d, moved without the model it names) only detects.
+
+Published under the node's namespace: `dope/pose_<object>` (PoseStamped, the best pose of each object, only
+when found), `dope/detections` (Detection3DArray, one per processed frame, empty when nothing was found; each
+detection's `id` is `<object>:detected` or `<object>:tracked`, its score the network's confidence or, refined
+or tracked, the silhouette score 0..1), `dope/overlay` (rgb8, the fitted cuboids and object axes drawn) and
+`dope/latency_ms` (Float64, image stamp to published detections). Poses are in the camera's OpenCV optical
+frame, metres; each header is the image's, with `camera_frame` as frame_id when set. Every `log_period_s` it
+logs frames received, frames processed and the latency.
 """
 
 from __future__ import annotations
@@ -40,8 +49,9 @@ from n2d_common.ros import (
     run_node,
     stamp_seconds,
 )
-from n2d_dope.config import DetectConfig
+from n2d_dope.config import DetectConfig, RefineConfig
 from n2d_dope.infer import Detection, DopeModel
+from n2d_dope.track import TrackConfig, Tracker
 from n2d_interfaces.msg import (
     BoundingBox3D,
     Detection3D,
@@ -74,11 +84,19 @@ class DopeNodeConfig:
     """Publish `dope/overlay`: the image with the detected cuboids and axes drawn."""
     log_period_s: float = 10.0
     """Log frames received, frames processed and the latency this often (seconds); 0: never."""
+    refine: bool = True
+    """Refine each detected pose against the image with the object's model (region-based) and drop detections
+    that do not fit it; needs the object's model directory the network was trained on."""
+    track: bool = True
+    """Follow each object from frame to frame by refinement (needs `refine`): the network runs in a worker of its
+    own when no object is tracked and every `redetect_frames` frames, the published poses keep the camera's rate."""
+    redetect_frames: int = 10
+    """While tracking, run the network again every this many frames (0: only when the track is lost)."""
     detect: DetectConfig = field(default_factory=DetectConfig)
     """Turning the network's maps into poses."""
 
     def __post_init__(self):
-        for name in ("threads", "max_rate_hz", "log_period_s"):
+        for name in ("threads", "max_rate_hz", "log_period_s", "redetect_frames"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -108,7 +126,7 @@ def detection3d(det: Detection, cuboid_m: np.ndarray, header: Header) -> Detecti
     sx, sy, sz = (float(v) for v in np.ptp(cuboid_m[:8], axis=0))
     hypothesis = ObjectHypothesisWithPose(hypothesis=ObjectHypothesis(class_id=det.object, score=float(det.score)),
                                           pose=PoseWithCovariance(pose=pose_msg(det.T_cam_obj)))
-    return Detection3D(header=header, results=[hypothesis],
+    return Detection3D(header=header, results=[hypothesis], id=f"{det.object}:{det.source}",
                        bbox=BoundingBox3D(center=pose_msg(T_cam_box), size=Vector3(x=sx, y=sy, z=sz)))
 
 
@@ -140,8 +158,7 @@ class DopeNode(Node):
         if not dirs:
             raise ConfigError("dope_node: no DOPE models given",
                               "set the parameter models, e.g. n2d launch dope models:=/path/to/dope_model")
-        self.models = [DopeModel(d, precision=self.cfg.precision, cfg=self.cfg.detect, threads=self.cfg.threads)
-                       for d in dirs]
+        self.models = [self._load(d) for d in dirs]
         self.cuboids = {m.name: m.cuboid_m for m in self.models}
         if len(self.cuboids) < len(self.models):
             names = ", ".join(m.name for m in self.models)
@@ -162,24 +179,42 @@ class DopeNode(Node):
         self._latencies_ms: list[float] = []
         self.camera_info_sub = LiveSubscription(self, CameraInfo, self.cfg.camera_info_topic, self.on_camera_info)
         self.image_sub = LiveSubscription(self, Image, self.cfg.image_topic, self.on_image)
+        self.trackers = {m.name: Tracker(m, TrackConfig(redetect_frames=self.cfg.redetect_frames))
+                         for m in self.models if self.cfg.track and m.refiner is not None}
+        self._tracked = threading.Lock()  # the trackers' state: the frame worker and the detection worker
+        self._detect_job: tuple | None = None
         self._worker = threading.Thread(target=self._work, daemon=True)
         self._worker.start()
+        self._detector = threading.Thread(target=self._detect_work, daemon=True)
+        if self.trackers:
+            self._detector.start()
         if self.cfg.log_period_s > 0:
             self._log_since = time.monotonic()
             self.create_timer(self.cfg.log_period_s, self.on_log_timer)
-        self.get_logger().info(f"dope ready: {', '.join(self.cuboids)} ({self.cfg.precision}) on "
+        mode = "tracking" if self.trackers else "refining" if any(m.refiner for m in self.models) else "detecting"
+        self.get_logger().info(f"dope ready: {', '.join(self.cuboids)} ({self.cfg.precision}, {mode}) on "
                                f"{self.image_sub.topic_name}")
+
+    def _load(self, directory: str) -> DopeModel:
+        """A model, refining its detections when `refine` is set and its object's model can be found."""
+        kwargs = dict(precision=self.cfg.precision, cfg=self.cfg.detect, threads=self.cfg.threads)
+        if self.cfg.refine:
+            try:
+                return DopeModel(directory, refine=RefineConfig(), **kwargs)
+            except ConfigError as exc:  # a network without its object's model still detects
+                self.get_logger().warning(f"{directory}: no refinement or tracking: {exc.message} ({exc.hint})")
+        return DopeModel(directory, **kwargs)
 
     def on_image(self, msg: Image) -> None:
         with self._new:
             self._image = msg
             self._received += 1
-            self._new.notify()
+            self._new.notify_all()
 
     def on_camera_info(self, msg: CameraInfo) -> None:
         with self._new:
             self._info = msg
-            self._new.notify()
+            self._new.notify_all()
 
     def on_log_timer(self) -> None:
         with self._new:
@@ -221,7 +256,8 @@ class DopeNode(Node):
         rgb = image_rgb(image)
         K = np.array(info.k, dtype=float).reshape(3, 3)
         header = Header(stamp=image.header.stamp, frame_id=self.cfg.camera_frame or image.header.frame_id)
-        found = [det for model in self.models for det in model.detect(rgb, K)]
+        found = [det for model in self.models if model.name not in self.trackers for det in model.detect(rgb, K)]
+        found += self._track(rgb, K, stamp_seconds(image.header.stamp))
         for name, pub in self.pose_pubs.items():
             best = max((det for det in found if det.object == name), key=lambda det: det.score, default=None)
             if best is not None:
@@ -236,11 +272,52 @@ class DopeNode(Node):
             self.overlay_pub.publish(image_msg(draw_overlay(rgb, K, found, self.cuboids), "rgb8", header.stamp,
                                                header.frame_id))
 
+    def _track(self, rgb: np.ndarray, K: np.ndarray, stamp: float) -> list[Detection]:
+        """Follow the tracked objects into this frame; hand the frame to the detection worker when one of them
+        needs the network. Returns the poses as detections (score: the silhouette score)."""
+        if not self.trackers:
+            return []
+        out = []
+        with self._tracked:
+            for name, tracker in self.trackers.items():
+                pose = tracker.track(rgb, K, stamp)
+                if pose is not None:
+                    out.append(Detection(name, pose.T_cam_obj, pose.score, np.full((9, 2), np.nan), 0.0,
+                                         pose.score, pose.source))
+            due = any(t.needs_detection() for t in self.trackers.values())
+        if due:
+            with self._new:
+                self._detect_job = (rgb, K, stamp)
+                self._new.notify_all()
+        return out
+
+    def _detect_work(self) -> None:
+        """Run the tracked objects' networks on the newest frame handed over, and offer the trackers the result."""
+        while True:
+            with self._new:
+                self._new.wait_for(lambda: not self._running or self._detect_job is not None)
+                if not self._running:
+                    return
+                (rgb, K, stamp), self._detect_job = self._detect_job, None
+            try:
+                for model in self.models:
+                    tracker = self.trackers.get(model.name)
+                    if tracker is not None:
+                        found = model.detect(rgb, K)
+                        with self._tracked:
+                            tracker.offer(rgb, K, found, stamp)
+            except Exception as exc:  # as in the frame worker: say why and go on
+                if not self.context.ok():
+                    return
+                self.get_logger().error(f"detection skipped: {exc}", throttle_duration_sec=5.0)
+
     def destroy_node(self) -> None:
         with self._new:
             self._running = False
             self._new.notify_all()
         self._worker.join(timeout=10.0)
+        if self._detector.is_alive():
+            self._detector.join(timeout=10.0)
         super().destroy_node()
 
 
