@@ -4,8 +4,9 @@
                                  [--dope-model DIR | --dope-train DIR [--dope-minutes M]] [--dope-test DIR]
                                  [--args NAME='EXTRA ARGS'] [--logs DIR]
 
-Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct, dataset, dope, then
-pipeline (the whole `n2d demo`; `--args pipeline='--run DIR'` reads a finished run instead). Each runs
+Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct, dataset, dope, estimator
+(the default recipe within the demo's budget, trained per object), tracking (refinement and tracking on the
+validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`; `--args pipeline='--run DIR'` reads a finished run instead). Each runs
 as its own process (`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so
 that `table.print_table` hands its rows over as JSON lines; its output is shown as it runs and kept in a log
 directory (a temporary one unless `--logs`). Without `--quick` each benchmark runs with its own defaults (the
@@ -50,7 +51,8 @@ from n2d_common.contracts import atomic_write_text
 HERE = Path(__file__).resolve().parent
 
 STAGES = {"sim_camera": "sim camera", "board_poses": "board poses", "masks": "masks", "capture": "capture",
-          "reconstruct": "reconstruct", "dataset": "dataset", "dope": "dope", "pipeline": "whole pipeline"}
+          "reconstruct": "reconstruct", "dataset": "dataset", "dope": "dope", "estimator": "estimator",
+          "tracking": "tracking", "pipeline": "whole pipeline"}
 """Benchmark script name: stage name in the table, in pipeline order."""
 QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "board_poses": ["--views", "12"],
@@ -59,6 +61,8 @@ QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "reconstruct": ["--views", "12"],
          "dataset": ["--frames", "2", "--raster-frames", "10"],
          "dope": ["--views", "4", "--runs", "3", "--node-seconds", "5"],
+         "estimator": ["--test-frames", "8", "--set", "frames=60", "--set", "train_minutes=1"],
+         "tracking": ["--frames", "12"],
          "pipeline": ["--set", "pipeline.views=12", "--set", "pipeline.test_views=4", "--set", "pipeline.frames=24",
                       "--set", "pipeline.test_frames=8", "--set", "pipeline.train_minutes=2", "--set", "live_views=4"]}
 """Small settings per benchmark for `--quick`."""
@@ -289,13 +293,20 @@ def main(argv: list[str] | None = None) -> int:
             rows += kept_rows.get(stage, [])
             runs += [kept_runs[stage]] if stage in kept_runs else []
             continue
-        bench_args = (QUICK[name] if args.quick else []) + (dope_args if name == "dope" else []) + extra[name]
+        model_args = ["--model", str(args.dope_model)] if name == "tracking" and args.dope_model else []
+        bench_args = (QUICK[name] if args.quick else []) + (dope_args if name == "dope" else []) + model_args \
+            + extra[name]
         shown = shlex.join(["python", _display(str(HERE / f"{name}.py")), *bench_args])
         if name == "dope" and ("--test" not in bench_args or not {"--model", "--train"} & set(bench_args)):
             rows.append((stage, "not run", "needs --dope-test DIR and --dope-model DIR or --dope-train DIR", "", ""))
             runs.append(f"{stage}: not run (no test dataset, or no model or training dataset given)")
             print(f"== {name}: not run (give --dope-test and --dope-model or --dope-train, or --skip dope)",
                   file=sys.stderr)
+            continue
+        if name == "tracking" and "--model" not in bench_args:
+            rows.append((stage, "not run", "needs --dope-model DIR", "", ""))
+            runs.append(f"{stage}: not run (no DOPE model given)")
+            print(f"== {name}: not run (give --dope-model, or --skip tracking)", file=sys.stderr)
             continue
         print(f"== {name}: {shown}", flush=True)
         code, tables, last, seconds = run_benchmark(name, bench_args, logs / f"{name}.log")

@@ -75,19 +75,21 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
 
 
 class _Image:
-    """An image's pixels as histogram bin indices."""
+    """An image's pixels as histogram bin indices, computed where lines sample them."""
 
     def __init__(self, rgb: np.ndarray, bins: int):
         self.h, self.w = rgb.shape[:2]
-        q = (rgb.astype(np.int64) * bins) // 256
-        self.bin = (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
+        self.rgb = rgb
         self.bins = bins
+        self._shift = int(np.log2(256 // bins)) if 256 % bins == 0 and (256 // bins) & (256 // bins - 1) == 0 else -1
 
     def sample(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bin indices at (..., 2) pixel positions (nearest pixel) and whether each is inside the image."""
         x, y = np.rint(xy[..., 0]).astype(np.int64), np.rint(xy[..., 1]).astype(np.int64)
         ok = (x >= 0) & (x < self.w) & (y >= 0) & (y < self.h)
-        return self.bin[np.clip(y, 0, self.h - 1), np.clip(x, 0, self.w - 1)], ok
+        px = self.rgb[np.clip(y, 0, self.h - 1), np.clip(x, 0, self.w - 1)].astype(np.int64)
+        q = px >> self._shift if self._shift >= 0 else (px * self.bins) // 256
+        return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2], ok
 
 
 def _contour(T: np.ndarray, K: np.ndarray, region: RegionModel) -> tuple[np.ndarray, ...]:
