@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # install.sh: set up n2d on a fresh Debian 12 / Ubuntu 22.04+ machine, idempotently.
 #
-#   ./install.sh            apt libraries (if missing), .venv, pinned Python deps, the n2d_interfaces
-#                           build (CMake, against the ROS 2 Jazzy wheels), and the n2d packages (editable)
+#   ./install.sh            apt libraries (if missing), .venv, pinned Python deps, the interface packages
+#                           (vision_msgs, tf2_msgs, n2d_interfaces: CMake, against the ROS 2 Jazzy wheels) and
+#                           the n2d packages (editable)
 #
 # A second run checks stamps and finishes in seconds. Environment:
 #   N2D_VENV   where the virtual environment goes (default: .venv in the repo)
@@ -63,17 +64,27 @@ if [ "$(cat "$VENV/.n2d-deps" 2>/dev/null)" != "$deps_stamp" ]; then
   echo "$deps_stamp" > "$VENV/.n2d-deps"
 fi
 
-# --- 4. n2d_interfaces: CMake build against the Jazzy wheels, installed into the venv -------------------
-if_stamp=$(stamp $(find n2d_interfaces -type f | sort) "$VENV/.n2d-deps")
-if [ "$(cat "$VENV/.n2d-interfaces" 2>/dev/null)" != "$if_stamp" ]; then
-  say "building n2d_interfaces"
+# --- 4. interface packages: CMake builds against the Jazzy wheels, installed into the venv ---------------
+# vision_msgs and tf2_msgs (the upstream names and fields; only where no ROS installation provides them), then
+# n2d_interfaces.
+build_interfaces() {  # NAME SOURCE_DIR
+  local stamp_file="$VENV/.n2d-if-$1" stamp_value
+  stamp_value=$(stamp $(find "$2" -type f | sort) "$VENV/.n2d-deps")
+  [ "$(cat "$stamp_file" 2>/dev/null)" = "$stamp_value" ] && return 0
+  say "building $1"
   export AMENT_PREFIX_PATH=$VENV
-  cmake -S n2d_interfaces -B build/n2d_interfaces -G Ninja -DCMAKE_PREFIX_PATH="$VENV" \
+  cmake -S "$2" -B "build/$1" -G Ninja -DCMAKE_PREFIX_PATH="$VENV" \
     -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF >/dev/null
-  cmake --build build/n2d_interfaces -j"$(nproc)" >/dev/null
-  cmake --install build/n2d_interfaces >/dev/null
-  echo "$if_stamp" > "$VENV/.n2d-interfaces"
-fi
+  cmake --build "build/$1" -j"$(nproc)" >/dev/null
+  cmake --install "build/$1" >/dev/null
+  echo "$stamp_value" > "$stamp_file"
+}
+for pkg in vision_msgs tf2_msgs; do
+  if [ -f "$VENV/.n2d-if-$pkg" ] || ! "$PY" -c "import $pkg.msg" 2>/dev/null; then
+    build_interfaces "$pkg" "interfaces/$pkg"
+  fi
+done
+build_interfaces n2d_interfaces n2d_interfaces
 
 # --- 5. the n2d packages, editable, with their ament index entries ----------------------------------------
 pk_stamp=$(stamp $(for p in "${PACKAGES[@]}"; do echo "$p/setup.py" "$p/package.xml"; done) "$VENV/.n2d-deps")
@@ -93,6 +104,6 @@ if [ "$(cat "$VENV/.n2d-packages" 2>/dev/null)" != "$pk_stamp" ]; then
   echo "$pk_stamp" > "$VENV/.n2d-packages"
 fi
 
-"$PY" -c "import n2d_interfaces.action, rclpy, bpy, cv2, torch, dynamixel_sdk, n2d.cli" \
+"$PY" -c "import n2d_interfaces.action, vision_msgs.msg, tf2_msgs.msg, rclpy, bpy, cv2, torch, dynamixel_sdk, n2d.cli" \
   || { echo "install.sh: the environment does not import; delete $VENV and run again" >&2; exit 1; }
 say "ready: $VENV/bin/n2d"

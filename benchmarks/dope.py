@@ -108,6 +108,7 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
     at 30 Hz with fresh stamps; returns frames in, detections out, and latency (stamp -> detections received)."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import CameraInfo, Image
+    from vision_msgs.msg import Detection3DArray
 
     from n2d.launch_description import load
     from n2d.launcher import Launch
@@ -120,7 +121,6 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
         stamp_msg,
         stamp_seconds,
     )
-    from n2d_interfaces.msg import Detection3DArray
 
     domain = 90 + os.getpid() % 10
     ros_environment(domain)

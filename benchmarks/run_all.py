@@ -6,9 +6,10 @@
 
 Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct, dataset, dope, estimator
 (the default recipe within the demo's budget, trained per object), tracking (refinement and tracking on the
-validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`; `--args pipeline='--run DIR'` reads a finished run instead). Each runs
-as its own process (`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so
-that `table.print_table` hands its rows over as JSON lines; its output is shown as it runs and kept in a log
+validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`;
+`--args pipeline='--run DIR'` reads a finished run instead). Each runs as its own process
+(`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so that
+`table.print_table` hands its rows over as JSON lines; its output is shown as it runs and kept in a log
 directory (a temporary one unless `--logs`). Without `--quick` each benchmark runs with its own defaults (the
 numbers the README cites, an hour or more on 2 cores); `--quick` gives each smaller settings (fewer views,
 angles, frames, runs: a few minutes in all; not numbers to cite). `--args NAME='...'` appends arguments to

@@ -14,10 +14,12 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, Header
+from tf2_msgs.msg import TFMessage
+from vision_msgs.msg import Detection3DArray
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
-from n2d_common.frames import make_T, quat_from_R, rot_z
+from n2d_common.frames import R_from_quat, make_T, quat_from_R, rot_z
 from n2d_common.ros import (
     PUBLISH_QOS,
     SENSOR_QOS,
@@ -28,8 +30,14 @@ from n2d_common.ros import (
     stamp_seconds,
 )
 from n2d_dope.infer import Detection
-from n2d_dope.nodes.dope_node import detection3d, draw_overlay, model_dirs, pose_stamped, pose_topic
-from n2d_interfaces.msg import Detection3DArray
+from n2d_dope.nodes.dope_node import (
+    detection3d,
+    draw_overlay,
+    model_dirs,
+    pose_stamped,
+    pose_topic,
+    transform_stamped,
+)
 
 CUBOID = np.array([(1, 1, 1), (-1, 1, 1), (-1, -1, 1), (1, -1, 1), (1, 1, -1), (-1, 1, -1), (-1, -1, -1), (1, -1, -1),
                    (0, 0, 0)], dtype=float) * [0.04, 0.03, 0.07] + [0.0, 0.0, 0.01]
@@ -68,7 +76,7 @@ def test_message_conversions():
     assert np.allclose([q.x, q.y, q.z, q.w], [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
 
     d = detection3d(det, CUBOID, header)
-    assert d.header.frame_id == "cam" and len(d.results) == 1
+    assert d.header.frame_id == "cam" and len(d.results) == 1 and d.id == "box:detected"
     hyp = d.results[0]
     assert hyp.hypothesis.class_id == "box" and hyp.hypothesis.score == 0.75
     assert hyp.pose.pose == pose.pose
@@ -87,6 +95,21 @@ def test_message_conversions():
     assert model_dirs("/a/dope, /b/dope /c") == ["/a/dope", "/b/dope", "/c"]
     assert model_dirs(["/a b/dope", ""]) == ["/a b/dope"]
     assert pose_topic("sugar-box.2") == "dope/pose_sugar_box_2"
+
+    tf = transform_stamped(det, header, "n2d/box")
+    assert (tf.header.frame_id, tf.child_frame_id) == ("cam", "n2d/box")
+    assert np.allclose(_transform_T(tf.transform), T, atol=1e-9)
+
+
+def _transform_T(transform) -> np.ndarray:
+    """4 x 4 of a geometry_msgs/Transform, as a TF listener composes it."""
+    t, q = transform.translation, transform.rotation
+    return make_T(R_from_quat([q.x, q.y, q.z, q.w]), [t.x, t.y, t.z])
+
+
+def _pose_T(pose) -> np.ndarray:
+    p, q = pose.position, pose.orientation
+    return make_T(R_from_quat([q.x, q.y, q.z, q.w]), [p.x, p.y, p.z])
 
 
 def _frames(dataset, scale: int = 1):
@@ -112,15 +135,16 @@ def _wait(predicate, timeout_s: float, what: str, logs: list[str]):
 
 
 @pytest.mark.timeout(240)
-def test_dope_node_live(dope_model, ros_domain):
+def test_dope_node_live(dope_model, ros_domain, tmp_path):
     model_dir, dataset = dope_model
     box_size = np.ptp(json.loads((model_dir / "config.json").read_text())["cuboid_points_m"][:8], axis=0)
     logs: list[str] = []
-    received = {"detections": [], "overlay": [], "latency": [], "pose": []}
+    received = {"detections": [], "overlay": [], "latency": [], "pose": [], "tf": []}
     spec = load("dope")
-    # thresholds low enough that even this barely trained model finds (meaningless) boxes: the pose path runs
+    # thresholds low enough that even this barely trained model finds (meaningless) boxes, and no refinement
+    # (which would reject them): the pose path runs
     spec.nodes[0].parameters.update({"detect.peak_threshold": 0.01, "detect.min_keypoints": 4,
-                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2})
+                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2, "refine": False})
     with Launch(spec, {"models": str(model_dir), "max_rate_hz": str(RATE_HZ)}, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
             image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
@@ -130,8 +154,18 @@ def test_dope_node_live(dope_model, ros_domain):
             node.create_subscription(Image, "/n2d/dope/overlay", received["overlay"].append, every)
             node.create_subscription(Float64, "/n2d/dope/latency_ms", received["latency"].append, every)
             node.create_subscription(PoseStamped, "/n2d/dope/pose_box", received["pose"].append, every)
+            node.create_subscription(TFMessage, "/tf", lambda m: received["tf"].extend(m.transforms), every)
             _wait(lambda: image_pub.get_subscription_count() and node.count_publishers("/n2d/dope/overlay"), 60,
                   "dope_node", logs)
+
+            # the detections' type, as DDS discovery reports it: vision_msgs' own name and hash
+            from test_interop_msgs import upstream_hashes
+
+            endpoint = node.get_publishers_info_by_topic("/n2d/dope/detections")[0]
+            assert endpoint.topic_type == "vision_msgs/msg/Detection3DArray"
+            expected = upstream_hashes(tmp_path, "vision_msgs")["Detection3DArray"]
+            assert endpoint.topic_type_hash.version == 1
+            assert "RIHS01_" + endpoint.topic_type_hash.value.hex() == expected
 
             def publish(rgb, K, stamp):
                 info_pub.publish(camera_info_msg(K, rgb.shape[1], rgb.shape[0], stamp, "test_cam"))
@@ -158,6 +192,12 @@ def test_dope_node_live(dope_model, ros_domain):
                     best = max(detections.detections, key=lambda d: d.results[0].hypothesis.score)
                     _wait(lambda t=t: with_stamp(received["pose"], t) is not None, 10, "the pose", logs)
                     assert with_stamp(received["pose"], t).pose == best.results[0].pose.pose
+                    assert best.id == "box:detected"
+                    # on /tf: the camera frame -> n2d/box, the same pose as a listener composes it
+                    _wait(lambda t=t: with_stamp(received["tf"], t) is not None, 10, "the transform", logs)
+                    tf = with_stamp(received["tf"], t)
+                    assert (tf.header.frame_id, tf.child_frame_id) == ("test_cam", "n2d/box")
+                    assert np.allclose(_transform_T(tf.transform), _pose_T(best.results[0].pose.pose), atol=1e-6)
                 _wait(lambda t=t: with_stamp(received["overlay"], t) is not None, 10, "the overlay", logs)
                 overlay = with_stamp(received["overlay"], t)
                 assert (overlay.width, overlay.height, overlay.encoding) == (rgb.shape[1], rgb.shape[0], "rgb8")

@@ -184,9 +184,9 @@ class _LiveRecorder:
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image
         from std_msgs.msg import Float64
+        from vision_msgs.msg import Detection3DArray
 
         from n2d_common.ros import SENSOR_QOS
-        from n2d_interfaces.msg import Detection3DArray
 
         self.lock = threading.Lock()
         self.truth: dict[int, object] = {}

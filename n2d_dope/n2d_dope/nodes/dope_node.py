@@ -15,9 +15,10 @@ Published under the node's namespace: `dope/pose_<object>` (PoseStamped, the bes
 when found), `dope/detections` (Detection3DArray, one per processed frame, empty when nothing was found; each
 detection's `id` is `<object>:detected` or `<object>:tracked`, its score the network's confidence or, refined
 or tracked, the silhouette score 0..1), `dope/overlay` (rgb8, the fitted cuboids and object axes drawn) and
-`dope/latency_ms` (Float64, image stamp to published detections). Poses are in the camera's OpenCV optical
-frame, metres; each header is the image's, with `camera_frame` as frame_id when set. Every `log_period_s` it
-logs frames received, frames processed and the latency.
+`dope/latency_ms` (Float64, image stamp to published detections); and on `/tf` (`publish_tf`) each object's
+frame `tf_prefix` + name (`n2d/box`) under the camera's frame. Detections are `vision_msgs` messages. Poses are
+in the camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when
+set. Every `log_period_s` it logs frames received, frames processed and the latency.
 """
 
 from __future__ import annotations
@@ -30,11 +31,20 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from geometry_msgs.msg import PoseStamped, PoseWithCovariance, Vector3
+from geometry_msgs.msg import PoseStamped, PoseWithCovariance, Transform, TransformStamped, Vector3
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, Header
+from tf2_msgs.msg import TFMessage
+from vision_msgs.msg import (
+    BoundingBox3D,
+    Detection3D,
+    Detection3DArray,
+    ObjectHypothesis,
+    ObjectHypothesisWithPose,
+)
 
 from n2d_common.errors import ConfigError, N2DError
 from n2d_common.frames import project, transform_points
@@ -52,14 +62,9 @@ from n2d_common.ros import (
 from n2d_dope.config import DetectConfig, RefineConfig
 from n2d_dope.infer import Detection, DopeModel
 from n2d_dope.track import TrackConfig, Tracker
-from n2d_interfaces.msg import (
-    BoundingBox3D,
-    Detection3D,
-    Detection3DArray,
-    ObjectHypothesis,
-    ObjectHypothesisWithPose,
-)
 
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+"""/tf as tf2's TransformBroadcaster publishes it."""
 MODELS_DOC = ("DOPE model directories (from `n2d train`), one per object: a string array, or one string of comma- "
               "or space-separated directories.")
 
@@ -82,6 +87,10 @@ class DopeNodeConfig:
     """Process at most this many frames per second; 0: every frame the detector keeps up with."""
     publish_overlay: bool = True
     """Publish `dope/overlay`: the image with the detected cuboids and axes drawn."""
+    publish_tf: bool = True
+    """Broadcast each object's pose on /tf: camera frame -> `tf_prefix` + object name."""
+    tf_prefix: str = "n2d/"
+    """Prefix of the objects' TF frame names."""
     log_period_s: float = 10.0
     """Log frames received, frames processed and the latency this often (seconds); 0: never."""
     refine: bool = True
@@ -130,6 +139,13 @@ def detection3d(det: Detection, cuboid_m: np.ndarray, header: Header) -> Detecti
                        bbox=BoundingBox3D(center=pose_msg(T_cam_box), size=Vector3(x=sx, y=sy, z=sz)))
 
 
+def transform_stamped(det: Detection, header: Header, child_frame: str) -> TransformStamped:
+    """The object frame of a detection as a TF transform: header.frame_id (the camera) -> `child_frame`."""
+    pose = pose_msg(det.T_cam_obj)
+    return TransformStamped(header=header, child_frame_id=child_frame, transform=Transform(
+        translation=Vector3(x=pose.position.x, y=pose.position.y, z=pose.position.z), rotation=pose.orientation))
+
+
 def draw_overlay(rgb: np.ndarray, K: np.ndarray, detections: list[Detection],
                  cuboids: dict[str, np.ndarray]) -> np.ndarray:
     """A copy of `rgb` with each detection's fitted cuboid, object axes and label drawn."""
@@ -168,6 +184,7 @@ class DopeNode(Node):
                           for name in self.cuboids}
         self.detections_pub = self.create_publisher(Detection3DArray, "dope/detections", PUBLISH_QOS)
         self.latency_pub = self.create_publisher(Float64, "dope/latency_ms", PUBLISH_QOS)
+        self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS) if self.cfg.publish_tf else None
         self.overlay_pub = (self.create_publisher(Image, "dope/overlay", PUBLISH_QOS) if self.cfg.publish_overlay
                             else None)
 
@@ -258,10 +275,14 @@ class DopeNode(Node):
         header = Header(stamp=image.header.stamp, frame_id=self.cfg.camera_frame or image.header.frame_id)
         found = [det for model in self.models if model.name not in self.trackers for det in model.detect(rgb, K)]
         found += self._track(rgb, K, stamp_seconds(image.header.stamp))
+        transforms = []
         for name, pub in self.pose_pubs.items():
             best = max((det for det in found if det.object == name), key=lambda det: det.score, default=None)
             if best is not None:
                 pub.publish(pose_stamped(best, header))
+                transforms.append(transform_stamped(best, header, self.cfg.tf_prefix + name))
+        if self.tf_pub is not None and transforms and header.frame_id:  # TF needs the camera's frame name
+            self.tf_pub.publish(TFMessage(transforms=transforms))
         self.detections_pub.publish(Detection3DArray(
             header=header, detections=[detection3d(det, self.cuboids[det.object], header) for det in found]))
         latency_ms = (self.get_clock().now().nanoseconds * 1e-9 - stamp_seconds(image.header.stamp)) * 1e3
