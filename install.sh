@@ -73,6 +73,8 @@ build_interfaces() {  # NAME SOURCE_DIR
   [ "$(cat "$stamp_file" 2>/dev/null)" = "$stamp_value" ] && return 0
   say "building $1"
   export AMENT_PREFIX_PATH=$VENV
+  # a clean build: rosidl's generated sources do not follow a removed interface in an incremental one
+  rm -rf "build/$1"
   cmake -S "$2" -B "build/$1" -G Ninja -DCMAKE_PREFIX_PATH="$VENV" \
     -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF >/dev/null
   cmake --build "build/$1" -j"$(nproc)" >/dev/null
