@@ -181,6 +181,14 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     assert 0 <= evaluation["false_detections"] and "false detections" in result.stdout
     assert (out / "eval_synthetic.png").is_file()
 
+    # the same frames as a BOP split (an n2d dataset is one): BOP's recalls and results CSV
+    bop = subprocess.run([sys.executable, "-m", "n2d.cli", "evaluate", str(out), str(dataset), "--object-id", "1",
+                          "--split", "train_pbr"], capture_output=True, text=True)
+    assert bop.returncode == 0, bop.stderr
+    assert "BOP MSSD / MSPD recall" in bop.stdout
+    assert (out / "bop_train_pbr.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")
+    assert json.loads((out / "eval.json").read_text())["bop_train_pbr/fp32"]["instances"] >= visible
+
     # a turntable session as a test set: the true pose is the camera pose composed with the object's place
     session = tmp_path / "session"
     truth = render_session(session, small_world("box", 320, 240), views=3)

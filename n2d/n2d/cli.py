@@ -307,7 +307,18 @@ def cmd_evaluate(args) -> int:
 
     test = read_manifest(args.test) if args.test.is_dir() else None
     refine = RefineConfig() if args.refine else None
-    if test is not None and test["kind"] == "capture_session":
+    if args.object_id is not None:
+        from n2d_dope.bop_eval import evaluate_bop
+
+        name = args.name or f"bop_{args.split}"
+        r = evaluate_bop(args.model, args.test, args.object_id, split=args.split, targets=args.targets, name=name,
+                         precision=args.precision, refine=refine, max_images=args.frames,
+                         progress=_progress_bar("evaluate"))
+        print(f"evaluate: BOP MSSD / MSPD recall {r['mssd_recall']:.3f} / {r['mspd_recall']:.3f}; ADD-S by "
+              "visible fraction: " + ", ".join(f"{k} {100 * v['adds_accuracy_10pct']:.1f} % ({v['instances']})"
+                                               for k, v in r["visibility_buckets"].items() if v["instances"]))
+        print(f"evaluate: wrote the BOP results CSV {r['csv']}")
+    elif test is not None and test["kind"] == "capture_session":
         name = args.name or "turntable"
         r = evaluate_session(args.model, args.test, object_model_dir=args.object_model, name=name,
                              precision=args.precision, refine=refine, progress=_progress_bar("evaluate"))
@@ -460,12 +471,17 @@ def build_parser() -> argparse.ArgumentParser:
                        "turntable sweep at angles not used for the reconstruction, object not moved: ground truth "
                        "from the board). Writes MODEL/eval.json (under NAME/PRECISION) and MODEL/eval_NAME.png.")
     p.add_argument("model", type=Path, help="DOPE model directory (from n2d train)")
-    p.add_argument("test", type=Path, help="test dataset or capture session directory")
+    p.add_argument("test", type=Path, help="test dataset or capture session directory, or a BOP dataset with "
+                   "--object-id")
     p.add_argument("--name", help="name of this test set in eval.json (default: synthetic or turntable)")
     p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="which exported model to run")
     p.add_argument("--frames", type=int, default=0, help="dataset: evaluate only the first N frames (0: all)")
     p.add_argument("--refine", action="store_true", help="refine each detected pose against the image with the "
                    "object's model (region-based, as dope_node does) and drop poses that do not fit")
+    p.add_argument("--object-id", type=int, help="score on a BOP-format dataset (TEST is its directory): the "
+                   "object's id there (models/obj_NNNNNN.ply); also writes BOP's results CSV")
+    p.add_argument("--split", default="test", help="BOP: the split (default test)")
+    p.add_argument("--targets", type=Path, help="BOP: a test_targets_bop19.json picking the images")
     p.add_argument("--object-model", type=Path, help="capture session: the object's model directory from n2d "
                    "reconstruct (records where it stood on the plate; default: the model DOPE was trained on)")
     p.set_defaults(func=cmd_evaluate)

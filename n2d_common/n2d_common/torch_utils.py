@@ -1,10 +1,10 @@
-"""Small PyTorch helpers shared by the stages that train networks (NeuS, DOPE): device choice, atomic saves, safe
-loads."""
+"""Small PyTorch helpers shared by the stages: device choice, atomic saves, safe loads, thread counts."""
 
 from __future__ import annotations
 
 import os
 import pickle
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -42,3 +42,15 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except (RuntimeError, EOFError, OSError) as exc:
         raise ContractError(f"{path} is not a readable checkpoint ({type(exc).__name__}: {str(exc)[:200]})",
                             "re-run the stage with --overwrite") from None
+
+
+@contextmanager
+def torch_threads(count: int):
+    """Run torch's CPU ops with `count` threads inside the block (many small ops, e.g. rasterizing small images,
+    run far slower with several threads on a busy machine), restoring the previous count after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -75,12 +76,14 @@ def _overlay(rgb: np.ndarray, K: np.ndarray, truths: list[np.ndarray], detection
     return out
 
 
-def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: float, name: str,
+def score_images(model: DopeModel, items, total: int, points: np.ndarray, diameter: float, name: str,
            progress: ProgressFn, cancel: threading.Event | None,
-           sym_poses: list[np.ndarray] | None = None) -> tuple[dict, list[np.ndarray]]:
+           sym_poses: list[np.ndarray] | None = None, on_detections=None) -> tuple[dict, list[np.ndarray], dict]:
     """Run the model over `items` ((rgb, K, true poses) per image), match each true instance to the detection
     with the smallest ADD-S, and summarise (ADD, ADD-S; BOP's MSSD and MSPD recall under the model's symmetries
-    `sym_poses`); also returns overlays of up to OVERLAYS evenly spread images."""
+    `sym_poses`); also returns overlays of up to OVERLAYS evenly spread images and the per-instance errors
+    ({"add", "adds"}: metres, inf for a miss, in the order of the instances). `on_detections(i, detections,
+    seconds)` sees each image's detections."""
     sym_poses = sym_poses or [np.eye(4)]
     mssd_points = points[:: max(1, len(points) // 500)]  # MSSD / MSPD are maxima over the points: 500 suffice
     add_errors, adds_errors, network_s, post_s, refine_s, overlays = [], [], [], [], [], []
@@ -91,7 +94,10 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
     for i, (rgb, K, truths) in enumerate(items):
         if cancel is not None and cancel.is_set():
             raise Cancelled("evaluation cancelled", "run it again")
+        started = time.perf_counter()
         detections = model.detect(rgb, K)
+        if on_detections is not None:
+            on_detections(i, detections, time.perf_counter() - started)
         width = rgb.shape[1]
         network_s.append(model.timing.network)
         post_s.append(model.timing.postprocess)
@@ -124,10 +130,10 @@ def _score(model: DopeModel, items, total: int, points: np.ndarray, diameter: fl
                    "postprocess_ms_mean": 1000 * float(np.mean(post_s)) if post_s else None,
                    "refined": model.refiner is not None,
                    "refine_ms_mean": 1000 * float(np.mean(refine_s)) if refine_s and model.refiner else None})
-    return result, overlays
+    return result, overlays, {"add": add_errors, "adds": adds_errors}
 
 
-def _record(model_dir: Path, name: str, result: dict, overlays: list[np.ndarray]) -> None:
+def record_result(model_dir: Path, name: str, result: dict, overlays: list[np.ndarray]) -> None:
     """Store `result` in eval.json under NAME/PRECISION and the overlays as eval_NAME.png."""
     if overlays:
         write_png(model_dir / f"eval_{name}.png", contact_sheet(overlays, thumb_width=min(480, overlays[0].shape[1])))
@@ -163,9 +169,9 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
             K = np.array(camera["cam_K"], dtype=float).reshape(3, 3)
             yield read_rgb(frame.image), K, _ground_truth(frame, obj_id, min_visibility)
 
-    result, overlays = _score(model, items(), len(frames), points, diameter, name, progress, cancel, sym_poses)
+    result, overlays, _ = score_images(model, items(), len(frames), points, diameter, name, progress, cancel, sym_poses)
     result.update({"frames": len(frames), "dataset": str(info.directory), "min_visibility": min_visibility})
-    _record(model_dir, name, result, overlays)
+    record_result(model_dir, name, result, overlays)
     return result
 
 
@@ -217,9 +223,9 @@ def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turnta
             rgb = read_rgb(image)
             yield (cv2.undistort(rgb, K, dist) if np.any(dist) else rgb), K, [T_cam_obj]
 
-    result, overlays = _score(model, items(), len(views), points, diameter, name, progress, cancel,
-                              model_symmetries(object_dir))
+    result, overlays, _ = score_images(model, items(), len(views), points, diameter, name, progress, cancel,
+                                 model_symmetries(object_dir))
     result.update({"views": len(views), "session": str(Path(session_dir).absolute()),
                    "ground_truth": "board camera poses composed with T_turntable_obj"})
-    _record(model_dir, name, result, overlays)
+    record_result(model_dir, name, result, overlays)
     return result

@@ -35,6 +35,7 @@ import numpy as np
 
 from n2d_common.frames import make_T, transform_points
 from n2d_common.raster import render_textured
+from n2d_common.torch_utils import torch_threads
 from n2d_dope.config import RefineConfig
 from n2d_dope.region_model import REGION_MODEL, RegionModel, build_region_model
 
@@ -244,8 +245,9 @@ def texture_agreement(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, mod
     K_roi = K.copy()
     K_roi[0, 2] -= x0
     K_roi[1, 2] -= y0
-    rendered, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K_roi, T_cam_obj,
-                                     x1 - x0 + 1, y1 - y0 + 1)
+    with torch_threads(1):  # a small render: more threads only contend with the network's
+        rendered, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K_roi,
+                                         T_cam_obj, x1 - x0 + 1, y1 - y0 + 1)
     mask = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(np.float32)
     if mask.sum() < 50:
         return float("nan")

@@ -21,6 +21,7 @@ from n2d_common.contracts import atomic_write_bytes
 from n2d_common.errors import ContractError
 from n2d_common.frames import inv_T, transform_points
 from n2d_common.raster import rasterize
+from n2d_common.torch_utils import torch_threads
 
 VIEWS = 1000
 """Directions of the sparse model: neighbours about 6.5 degrees apart."""
@@ -28,6 +29,9 @@ POINTS = 200
 """Contour points per direction."""
 IMAGE_PX = 256
 """Side of the square silhouette renders; the object's bounding sphere spans 90 % of it."""
+RENDER_FACES = 5000
+"""Meshes with more faces are decimated to this many for the silhouette renders (a reconstructed model's 40k
+faces would cost seconds per view; at 256 px the decimated silhouette is the same to a fraction of a pixel)."""
 _FOCAL = 1000.0
 REGION_MODEL = "region_model.npz"
 """File name of a cached sparse viewpoint model."""
@@ -105,6 +109,11 @@ def build_region_model(vertices: np.ndarray, faces: np.ndarray, views: int = VIE
     radius = float(np.linalg.norm(V - centre, axis=1).max())
     if not radius > 0:
         raise ContractError("the model is a single point", "check the model's mesh.obj")
+    if len(F) > RENDER_FACES:
+        import fast_simplification
+
+        V, F = fast_simplification.simplify(V.astype(np.float32), F, target_count=RENDER_FACES)
+        V, F = np.asarray(V, float), np.asarray(F, np.int64)
     distance = _FOCAL * radius / (0.45 * image_px)
     c = (image_px - 1) / 2.0
     K = np.array([[_FOCAL, 0.0, c], [0.0, _FOCAL, c], [0.0, 0.0, 1.0]])
@@ -112,17 +121,22 @@ def build_region_model(vertices: np.ndarray, faces: np.ndarray, views: int = VIE
     dirs = fibonacci_sphere(views)
     all_points = np.zeros((views, points, 3))
     all_normals = np.zeros((views, points, 3))
-    for i, d in enumerate(dirs):
-        T = look_from(d, centre, distance)
-        r = rasterize(transform_points(T, V), F, K, image_px, image_px)
-        px, normal = contour_samples(r.mask, points)
-        depth = r.depth[px[:, 1], px[:, 0]]
-        edge = px + 0.5 * normal  # the silhouette edge lies half a pixel outside the boundary pixel's centre
-        cam = (np.c_[edge, np.ones(len(edge))] @ K_inv.T) * depth[:, None]
-        R_obj_cam = T[:3, :3].T
-        all_points[i] = (cam - T[:3, 3]) @ R_obj_cam.T
-        all_normals[i] = np.c_[normal, np.zeros(len(normal))] @ R_obj_cam.T
+    with torch_threads(1):
+        for i, d in enumerate(dirs):
+            all_points[i], all_normals[i] = _view(V, F, K, K_inv, look_from(d, centre, distance), image_px, points)
     return RegionModel(dirs, all_points, all_normals, centre, radius)
+
+
+def _view(V: np.ndarray, F: np.ndarray, K: np.ndarray, K_inv: np.ndarray, T: np.ndarray, image_px: int,
+          points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Contour points and normals (object frame) of the mesh's silhouette seen with pose T."""
+    r = rasterize(transform_points(T, V), F, K, image_px, image_px)
+    px, normal = contour_samples(r.mask, points)
+    depth = r.depth[px[:, 1], px[:, 0]]
+    edge = px + 0.5 * normal  # the silhouette edge lies half a pixel outside the boundary pixel's centre
+    cam = (np.c_[edge, np.ones(len(edge))] @ K_inv.T) * depth[:, None]
+    R_obj_cam = T[:3, :3].T
+    return (cam - T[:3, 3]) @ R_obj_cam.T, np.c_[normal, np.zeros(len(normal))] @ R_obj_cam.T
 
 
 def contour_samples(mask: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
