@@ -34,6 +34,8 @@ from n2d_sim import world
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 SPEC = BoardSpec()
 SOURCE_PX_PER_SQUARE = 120
 """Synthetic source resolution: markers sit exactly centred in their squares, as on a good print."""

@@ -14,6 +14,8 @@ from n2d_common.formats.session import read_session
 from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Capture
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 VIEWS = 12
 """Enough for the turntable fit; each view is a render, so more only makes the test slower."""
 

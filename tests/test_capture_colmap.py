@@ -18,6 +18,8 @@ from n2d_common.frames import inv_T, rot_z
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 STEP_DEG = 15.0
 VIEWS = 24
 

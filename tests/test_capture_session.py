@@ -20,6 +20,8 @@ from n2d_sim.camera import SimCamera
 from n2d_sim.frame_source import SimFrameSource
 from n2d_sim.world import SimWorldConfig, T_cam_turntable
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 
 def _rotation_deg(R):
     return math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1)))

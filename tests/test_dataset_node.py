@@ -14,6 +14,8 @@ from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import GenerateDataset
 from n2d_sim.objects import sample_object_dir
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 TINY = ("{camera: {width: 160, height: 120, focal_px: 150}, render: {samples: 2}, "
         "scene: {distractors: [0, 2], instances_per_model: [1, 1]}}")
 

@@ -24,6 +24,8 @@ from n2d.pipeline import STAGES, RunLayout
 from n2d_common.contracts import open_stage
 from n2d_common.images import read_png
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 TINY = {
     "live_views": 2, "live_frames": 2,
     "pipeline.views": 12, "pipeline.test_views": 4, "pipeline.frames": 8, "pipeline.test_frames": 4,

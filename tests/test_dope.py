@@ -144,6 +144,7 @@ def test_metrics():
     assert s["detected"] == 2 and s["adds_median_mm"] == pytest.approx(5.0)
 
 
+@pytest.mark.slow
 def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     cfg = TrainConfig.preset("tiny")
     cfg.epochs = 3
@@ -204,6 +205,7 @@ def test_train_cancel_resume_export_evaluate(dataset, tmp_path):
     assert on_plate["instances"] == on_plate["views"] == 3
 
 
+@pytest.mark.slow
 def test_fine_tune_on_two_datasets(dataset, tmp_path):
     """A training can start from a trained model's weights and use the frames of two datasets."""
     cfg = TrainConfig.preset("tiny")
@@ -235,6 +237,7 @@ def test_fine_tune_on_two_datasets(dataset, tmp_path):
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
+@pytest.mark.slow
 def test_cli_train_and_bad_input(dataset, tmp_path):
     out = tmp_path / "m"
     cli = [sys.executable, "-m", "n2d.cli", "train"]

@@ -39,6 +39,8 @@ from n2d_dope.nodes.dope_node import (
     transform_stamped,
 )
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 CUBOID = np.array([(1, 1, 1), (-1, 1, 1), (-1, -1, 1), (1, -1, 1), (1, 1, -1), (-1, 1, -1), (-1, -1, -1), (1, -1, -1),
                    (0, 0, 0)], dtype=float) * [0.04, 0.03, 0.07] + [0.0, 0.0, 0.01]
 """A 8 x 6 x 14 cm box whose centre sits 1 cm above the object origin (DOPE order: 8 corners, then the centre)."""

@@ -21,6 +21,8 @@ from n2d_common.images import read_png
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 ANGLES_DEG = [5.0, 52.0, 95.0, 141.0, 186.0, 230.0, 277.0, 322.0]
 """Uneven stops, as a hand-turned plate gives."""
 

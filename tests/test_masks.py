@@ -31,6 +31,8 @@ from n2d_sim.camera import SimCamera
 from n2d_sim.objects import SAMPLE_OBJECTS
 from n2d_sim.world import SimWorldConfig
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 SIZE = dict(width=480, height=360, focal_px=450.0)
 """Three quarters of the default camera, same field of view."""
 ANGLES = (0.5, 2.6, 4.7)

@@ -20,6 +20,8 @@ from n2d_reconstruct.neus.renderer import RayOutput
 from n2d_reconstruct.neus.trainer import _smoothness
 from n2d_sim.session import render_session, small_world
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 BOX_HALF_M = np.array([0.045, 0.03, 0.07])
 """Half extents of the simulator's box (90 x 60 x 140 mm)."""
 PSNR_FLOOR_DB = 17.0

@@ -20,6 +20,8 @@ from n2d_common.ros import background_node, wait_future
 from n2d_dope.config import TIMED_EPOCHS
 from n2d_interfaces.srv import PipelineStatus, StartPipeline
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 
 class NoStages:
     """A StageRunner that fails the test when any stage is asked to run: these checks come first."""

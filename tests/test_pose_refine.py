@@ -117,6 +117,7 @@ def test_texture_tells_the_half_turns_apart(box):
         assert texture_agreement(rgb, K, T, model) > 0.9
 
 
+@pytest.mark.slow
 def test_refiner_caches_its_region_model(tmp_path):
     refiner = Refiner(sample_object_dir("box"), cache_dir=tmp_path)
     assert (tmp_path / REGION_MODEL).is_file()

@@ -24,6 +24,8 @@ from n2d_reconstruct.refine import RefineConfig
 from n2d_reconstruct.texture import TextureConfig, unwrap
 from n2d_sim.session import render_session, small_world
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 VIEWS = 36
 SIZE = (320, 240)
 BOX_MM = np.array([90.0, 60.0, 140.0])

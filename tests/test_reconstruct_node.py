@@ -14,6 +14,8 @@ from n2d_common.ros import SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Reconstruct
 from n2d_sim.session import render_session, small_world
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 SMALL = "{mesh: {voxel_m: 0.003, target_faces: 3000}, texture: {size_px: 128}}"
 
 

@@ -18,6 +18,8 @@ from n2d_dope.pose_refine import Refiner, believable
 from n2d_dope.track import TrackConfig, Tracker
 from n2d_sim.objects import sample_object_dir
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 
 class TruthDetector:
     """Stand-in for a DopeModel: finds the object where the sequence says it is (when at least 30 % is visible),

@@ -18,6 +18,8 @@ from n2d_dataset.generate import generate_dataset
 from n2d_interfaces.action import Train
 from n2d_sim.objects import sample_object_dir
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 EPOCHS = 30
 """Training steps of the goals (two frames, batch 4: one step per epoch); a cancel lands within a few."""
 

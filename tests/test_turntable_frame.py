@@ -21,6 +21,8 @@ from n2d_sim import world
 from n2d_sim.camera import SimCamera
 from n2d_sim.world import SimWorldConfig
 
+pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
+
 CFG = SimWorldConfig()
 A_SIM = world.T_cam_turntable(CFG)
 
