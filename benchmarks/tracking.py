@@ -149,17 +149,18 @@ def main() -> None:
                     f"{r['detect_ms']:.0f} ms ({r['detections']} of them)" if tracker else f"{r['ms']:.0f} ms a frame")
             accuracy = f"{100 * r['adds']:.1f} % / {100 * r['add']:.1f} %"
             rows.append((f"{scene}: {r['way']}: ADD-S / ADD at 10 %", accuracy,
-                         f">= {100 * ADDS_GOAL:.0f} % ADD-S" if tracker else "",
-                         f"{met} median {r['rot_deg']:.2f} deg / {r['trans_mm']:.1f} mm; lost {r['lost']} of "
-                         f"{r['frames']} frames; {rate}".strip()))
+                         f">= {100 * ADDS_GOAL:.0f} % ADD-S" if tracker else "", met,
+                         f"median {r['rot_deg']:.2f} deg / {r['trans_mm']:.1f} mm; lost {r['lost']} of "
+                         f"{r['frames']} frames; {rate}"))
             if tracker:
                 jitter_met = r["jitter_mm"] <= JITTER_GOAL[0] and r["jitter_deg"] <= JITTER_GOAL[1]
                 rows.append((f"{scene}: tracker: jitter (frame-to-frame change of the error)",
                              f"{r['jitter_mm']:.2f} mm / {r['jitter_deg']:.2f} deg",
-                             f"<= {JITTER_GOAL[0]} mm / {JITTER_GOAL[1]} deg", "met" if jitter_met else "NOT met"))
+                             f"<= {JITTER_GOAL[0]} mm / {JITTER_GOAL[1]} deg", "met" if jitter_met else "NOT met",
+                             "median over consecutive frames that both have a pose"))
     machine = f"{platform.processor() or platform.machine()}, {len(__import__('os').sched_getaffinity(0))} cores"
     print_table(f"tracking: {args.model.name} on {args.object_model.name}, {args.frames} frames per scene at "
-                f"640 x 480; {machine}", rows, ("metric", "value", "goal", "note"))
+                f"640 x 480; {machine}", rows, ("metric", "value", "goal", "met", "note"))
 
 
 if __name__ == "__main__":
