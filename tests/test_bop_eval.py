@@ -110,6 +110,20 @@ def test_bad_input(bop):
         score_bop(detector, root, 7)
     with pytest.raises(ContractError, match="no split 'val'"):
         score_bop(detector, root, 1, split="val")
-    (root / "test" / "000001" / "scene_gt.json").write_text("{not json")
+    gt_path = root / "test" / "000001" / "scene_gt.json"
+    gt = json.loads(gt_path.read_text())
+    gt["1"][1]["cam_t_m2c"] = [0.0, float("nan"), 500.0]
+    gt_path.write_text(json.dumps(gt))
+    with pytest.raises(ContractError, match="image 1 has a malformed"):
+        list(read_split(root, 1))
+    del gt["1"][1]["cam_R_m2c"]
+    gt_path.write_text(json.dumps(gt))
+    with pytest.raises(ContractError, match="cam_R_m2c"):
+        list(read_split(root, 1))
+    gt_path.write_text("{not json")
     with pytest.raises(ContractError, match="not valid JSON"):
         list(read_split(root, 1))
+    info_path = root / "models" / "models_info.json"
+    info_path.write_text(json.dumps({"1": {"diameter": "big"}}))
+    with pytest.raises(ContractError, match="numeric diameter"):
+        score_bop(detector, root, 1)

@@ -4,6 +4,7 @@ bounded latency, a best-effort camera driver matched too, clean exit on SIGINT. 
 checked on a hand-made detection."""
 
 import json
+import shutil
 import signal
 import time
 
@@ -247,3 +248,53 @@ def test_dope_node_live(dope_model, ros_domain, tmp_path):
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=15) == 0, logs[-20:]
     assert not any("Traceback" in line or "ERROR" in line for line in logs), "\n".join(logs)
+
+
+@pytest.mark.timeout(240)
+def test_dope_node_refines_and_tracks_by_default(dope_model, ros_domain, tmp_path):
+    """With the defaults the node loads the object's model kept in the DOPE directory, runs the network in its
+    detection worker and publishes one (refined or tracked) result per frame; a model directory whose object
+    model is gone still detects, with a warning."""
+    model_dir, dataset = dope_model
+    assert (model_dir / "object" / "mesh.obj").is_file() and (model_dir / "region_model.npz").is_file()
+    logs: list[str] = []
+    received = []
+    spec = load("dope")
+    spec.nodes[0].parameters.update({"detect.peak_threshold": 0.01, "detect.min_keypoints": 4,
+                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2})
+    with Launch(spec, {"models": str(model_dir), "max_rate_hz": str(RATE_HZ)}, log=logs.append) as launch:
+        with background_node("test_camera", ros_domain) as node:
+            image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
+            info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS)
+            every = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+            node.create_subscription(Detection3DArray, "/n2d/dope/detections", received.append, every)
+            _wait(lambda: image_pub.get_subscription_count(), 60, "dope_node", logs)
+            assert any("box (fp32, tracking)" in line for line in logs), logs[-10:]
+            stamps = []
+            for rgb, K in _frames(dataset) * 3:
+                stamp = stamp_msg(time.time())
+                stamps.append(stamp_seconds(stamp))
+                deadline = time.monotonic() + 30
+                while stamps[-1] not in [stamp_seconds(m.header.stamp) for m in received]:
+                    assert time.monotonic() < deadline, "no result for a frame:\n" + "\n".join(logs[-20:])
+                    info_pub.publish(camera_info_msg(K, rgb.shape[1], rgb.shape[0], stamp, "test_cam"))
+                    image_pub.publish(image_msg(rgb, "rgb8", stamp, "test_cam"))
+                    time.sleep(0.3)
+            for msg in received:
+                assert all(d.id in ("box:detected", "box:tracked") for d in msg.detections)
+                assert all(0.0 <= d.results[0].hypothesis.score <= 1.0 for d in msg.detections)
+            assert not launch.dead(), logs[-20:]
+    assert not any("Traceback" in line or "skipped" in line for line in logs), "\n".join(logs)
+
+    # the same network without its object's model (moved without it): it detects, and says why it cannot refine
+    bare = tmp_path / "dope"
+    shutil.copytree(model_dir, bare, ignore=shutil.ignore_patterns("object", "region_model.npz"))
+    config = json.loads((bare / "config.json").read_text())
+    config.pop("object_model")
+    config["model_dir"] = str(tmp_path / "gone")
+    (bare / "config.json").write_text(json.dumps(config))
+    logs.clear()
+    with Launch(spec, {"models": str(bare)}, log=logs.append) as launch:
+        _wait(lambda: any("dope ready" in line for line in logs) or launch.dead(), 60, "dope_node", logs)
+        assert any("box (fp32, detecting)" in line for line in logs), logs[-10:]
+        assert any("no refinement or tracking" in line and "no object model" in line for line in logs), logs[-10:]

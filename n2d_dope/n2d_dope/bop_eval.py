@@ -63,11 +63,18 @@ def _json(path: Path) -> dict:
 
 def model_info(bop_dir: Path, object_id: int) -> dict:
     """The models_info.json entry of an object (millimetres)."""
-    info = _json(bop_dir / "models" / "models_info.json")
+    path = bop_dir / "models" / "models_info.json"
+    info = _json(path)
     if str(object_id) not in info:
-        raise ContractError(f"{bop_dir}/models/models_info.json has no object {object_id}",
-                            f"objects there: {', '.join(sorted(info, key=int))}")
-    return info[str(object_id)]
+        raise ContractError(f"{path} has no object {object_id}", f"objects there: {', '.join(sorted(info, key=int))}")
+    entry = info[str(object_id)]
+    try:
+        diameter = float(entry["diameter"])
+    except (KeyError, TypeError, ValueError):
+        raise ContractError(f"{path}: object {object_id} has no numeric diameter", "BOP writes it in mm") from None
+    if not np.isfinite(diameter) or diameter <= 0:
+        raise ContractError(f"{path}: object {object_id} has diameter {diameter}", "BOP writes it in mm, > 0")
+    return entry
 
 
 def model_points(bop_dir: Path, object_id: int) -> np.ndarray:
@@ -108,14 +115,30 @@ def read_split(bop_dir: str | Path, object_id: int, split: str = "test", targets
         for key in sorted(gt, key=int):
             if wanted is not None and (int(scene.name), int(key)) not in wanted:
                 continue
-            rows = [(g, i) for g, i in zip(gt[key], info.get(key, [{}] * len(gt[key]))) if g["obj_id"] == object_id]
-            if not rows and wanted is None:
-                continue
-            truths = [make_T(np.array(g["cam_R_m2c"], float).reshape(3, 3), np.array(g["cam_t_m2c"], float) / 1000)
-                      for g, _ in rows]
-            yield BopImage(int(scene.name), int(key), _image_path(scene, int(key)),
-                           np.array(cameras[key]["cam_K"], float).reshape(3, 3), truths,
-                           [float(i.get("visib_fract", 1.0)) for _, i in rows])
+            try:
+                image = _parse_image(scene, key, gt[key], cameras, info.get(key), object_id, wanted is not None)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ContractError(f"{scene}: image {key} has a malformed or missing entry ({exc!r})",
+                                    "scene_gt.json needs obj_id, cam_R_m2c (9), cam_t_m2c (mm); "
+                                    "scene_camera.json cam_K (9)") from None
+            if image is not None:
+                yield image
+
+
+def _parse_image(scene: Path, key: str, gt: list, cameras: dict, info: list | None, object_id: int,
+                 targeted: bool) -> BopImage | None:
+    """One image's entries of a scene's JSON files, for one object (None: the object is not in it and no
+    targets file asks for the image)."""
+    rows = [(g, i) for g, i in zip(gt, info or [{}] * len(gt)) if int(g["obj_id"]) == object_id]
+    if not rows and not targeted:
+        return None
+    truths = [make_T(np.array(g["cam_R_m2c"], float).reshape(3, 3), np.array(g["cam_t_m2c"], float).reshape(3) / 1000)
+              for g, _ in rows]
+    K = np.array(cameras[key]["cam_K"], float).reshape(3, 3)
+    if not (np.isfinite(K).all() and all(np.isfinite(T).all() for T in truths)):
+        raise ValueError("non-finite pose or intrinsics")
+    return BopImage(int(scene.name), int(key), _image_path(scene, int(key)), K, truths,
+                    [float(i.get("visib_fract", 1.0)) for _, i in rows])
 
 
 def write_csv(path: str | Path, rows: list[tuple]) -> None:

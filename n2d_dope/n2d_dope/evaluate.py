@@ -157,8 +157,7 @@ def evaluate(model_dir: str | Path, dataset_dir: str | Path, *, name: str = "syn
         raise ContractError(f"{info.directory} does not show {model.name}", "evaluate on a dataset of that object")
     obj_id = manifest["extra"]["models"][model.name]
     if refine is not None:
-        model = DopeModel(model_dir, precision=precision, refine=refine,
-                          object_dir=info.directory / "models" / model.name)
+        model.enable_refinement(refine, info.directory / "models" / model.name)
     points, diameter = model_points(info.directory / "models" / model.name)
     sym_poses = model_symmetries(info.directory / "models" / model.name)
     frames = info.frames[:max_frames] if max_frames > 0 else info.frames
@@ -215,7 +214,7 @@ def evaluate_session(model_dir: str | Path, session_dir: str | Path, *, T_turnta
         T_turntable_obj = np.array(stored, dtype=float)
     views = session_ground_truth(session_dir, T_turntable_obj)
     if refine is not None:
-        model = DopeModel(model_dir, precision=precision, refine=refine, object_dir=object_dir)
+        model.enable_refinement(refine, object_dir)
     points, diameter = model_points(object_dir)
 
     def items():

@@ -169,7 +169,12 @@ class DopeModel:
         self.timing = Timing()
         self.refiner = None
         if refine is not None:
-            self.refiner = Refiner(self.object_dir(object_dir), refine, cache_dir=self.directory)
+            self.enable_refinement(refine, object_dir)
+
+    def enable_refinement(self, cfg: RefineConfig, object_dir: str | Path | None = None) -> None:
+        """Refine every detection from now on (`refine`), against the object's model in `object_dir` (default:
+        `object_dir()`); its sparse viewpoint model is cached in the DOPE directory."""
+        self.refiner = Refiner(self.object_dir(object_dir), cfg, cache_dir=self.directory)
 
     def object_dir(self, given: str | Path | None = None) -> Path:
         """The object's model directory: `given`, the copy kept in the DOPE directory, or the one the network was
