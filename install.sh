@@ -81,7 +81,7 @@ build_interfaces() {  # NAME SOURCE_DIR
   cmake --install "build/$1" >/dev/null
   echo "$stamp_value" > "$stamp_file"
 }
-for pkg in vision_msgs tf2_msgs; do
+for pkg in vision_msgs tf2_msgs visualization_msgs; do
   if [ -f "$VENV/.n2d-if-$pkg" ] || ! "$PY" -c "import $pkg.msg" 2>/dev/null; then
     build_interfaces "$pkg" "interfaces/$pkg"
   fi
@@ -106,6 +106,6 @@ if [ "$(cat "$VENV/.n2d-packages" 2>/dev/null)" != "$pk_stamp" ]; then
   echo "$pk_stamp" > "$VENV/.n2d-packages"
 fi
 
-"$PY" -c "import n2d_interfaces.action, vision_msgs.msg, tf2_msgs.msg, rclpy, bpy, cv2, torch, dynamixel_sdk, n2d.cli" \
+"$PY" -c "import n2d_interfaces.action, vision_msgs.msg, tf2_msgs.msg, visualization_msgs.msg, rclpy, bpy, cv2, torch, dynamixel_sdk, n2d.cli" \
   || { echo "install.sh: the environment does not import; delete $VENV and run again" >&2; exit 1; }
 say "ready: $VENV/bin/n2d"

@@ -57,3 +57,21 @@ def look_at(eye, target) -> np.ndarray:
     T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
     T[:3, 3] = eye
     return T
+
+
+ROS_OWN_PARAMETERS = {"use_sim_time", "start_type_description_service"}
+"""Parameters rclpy declares on every node."""
+
+
+def list_parameters(node, node_name: str, timeout_s: float = 30.0) -> list[str]:
+    """The parameter names the node `node_name` (fully qualified) lists, as `ros2 param list` asks for them; `node`
+    spins in another thread. rclpy's own parameters are left out."""
+    from rcl_interfaces.srv import ListParameters
+
+    client = node.create_client(ListParameters, f"{node_name}/list_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f"{node_name} serves no list_parameters"
+        result = wait_future(client.call_async(ListParameters.Request()), timeout_s).result
+        return sorted(set(result.names) - ROS_OWN_PARAMETERS)
+    finally:
+        node.destroy_client(client)

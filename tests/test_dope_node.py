@@ -12,11 +12,13 @@ import cv2
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
+from helpers import list_parameters
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, Header
 from tf2_msgs.msg import TFMessage
 from vision_msgs.msg import Detection3DArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
@@ -130,6 +132,14 @@ def _frames(dataset, scale: int = 1):
     return out
 
 
+def _low_thresholds(tmp_path):
+    """The node's config file (expert settings are no parameters) with detection thresholds low enough that even
+    the barely trained test model finds (meaningless) boxes."""
+    path = tmp_path / "dope.yaml"
+    path.write_text("detect: {peak_threshold: 0.01, min_keypoints: 4, min_inliers: 0, affinity_threshold: 3.2}\n")
+    return path
+
+
 def _wait(predicate, timeout_s: float, what: str, logs: list[str]):
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -142,13 +152,12 @@ def test_dope_node_live(dope_model, ros_domain, tmp_path):
     model_dir, dataset = dope_model
     box_size = np.ptp(json.loads((model_dir / "config.json").read_text())["cuboid_points_m"][:8], axis=0)
     logs: list[str] = []
-    received = {"detections": [], "overlay": [], "latency": [], "pose": [], "tf": []}
+    received = {"detections": [], "overlay": [], "latency": [], "pose": [], "tf": [], "markers": []}
     spec = load("dope")
-    # thresholds low enough that even this barely trained model finds (meaningless) boxes, and no refinement
-    # (which would reject them): the pose path runs
-    spec.nodes[0].parameters.update({"detect.peak_threshold": 0.01, "detect.min_keypoints": 4,
-                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2, "refine": False})
-    with Launch(spec, {"models": str(model_dir), "max_rate_hz": str(RATE_HZ)}, log=logs.append) as launch:
+    # low detection thresholds and no refinement (which would reject the meaningless boxes): the pose path runs
+    spec.nodes[0].parameters["refine"] = False
+    args = {"models": str(model_dir), "max_rate_hz": str(RATE_HZ), "config": str(_low_thresholds(tmp_path))}
+    with Launch(spec, args, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
             image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
             info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS)
@@ -158,6 +167,7 @@ def test_dope_node_live(dope_model, ros_domain, tmp_path):
             node.create_subscription(Float64, "/n2d/dope/latency_ms", received["latency"].append, every)
             node.create_subscription(PoseStamped, "/n2d/dope/pose_box", received["pose"].append, every)
             node.create_subscription(TFMessage, "/tf", lambda m: received["tf"].extend(m.transforms), every)
+            node.create_subscription(MarkerArray, "/n2d/dope/markers", received["markers"].append, every)
             _wait(lambda: image_pub.get_subscription_count() and node.count_publishers("/n2d/dope/overlay"), 60,
                   "dope_node", logs)
 
@@ -201,6 +211,12 @@ def test_dope_node_live(dope_model, ros_domain, tmp_path):
                     tf = with_stamp(received["tf"], t)
                     assert (tf.header.frame_id, tf.child_frame_id) == ("test_cam", "n2d/box")
                     assert np.allclose(_transform_T(tf.transform), _pose_T(best.results[0].pose.pose), atol=1e-6)
+                    # for RViz: the object's mesh at the same pose
+                    _wait(lambda t=t: any(stamp_seconds(m.markers[0].header.stamp) == t for m in received["markers"]),
+                          10, "the markers", logs)
+                    marker = next(m for m in received["markers"]
+                                  if stamp_seconds(m.markers[0].header.stamp) == t).markers[1]
+                    assert marker.type == Marker.MESH_RESOURCE and marker.pose == best.results[0].pose.pose
                 _wait(lambda t=t: with_stamp(received["overlay"], t) is not None, 10, "the overlay", logs)
                 overlay = with_stamp(received["overlay"], t)
                 assert (overlay.width, overlay.height, overlay.encoding) == (rgb.shape[1], rgb.shape[0], "rgb8")
@@ -259,17 +275,20 @@ def test_dope_node_refines_and_tracks_by_default(dope_model, ros_domain, tmp_pat
     assert (model_dir / "object" / "mesh.obj").is_file() and (model_dir / "region_model.npz").is_file()
     logs: list[str] = []
     received = []
+    markers = []
     spec = load("dope")
-    spec.nodes[0].parameters.update({"detect.peak_threshold": 0.01, "detect.min_keypoints": 4,
-                                     "detect.min_inliers": 0, "detect.affinity_threshold": 3.2})
-    with Launch(spec, {"models": str(model_dir), "max_rate_hz": str(RATE_HZ)}, log=logs.append) as launch:
+    args = {"models": str(model_dir), "max_rate_hz": str(RATE_HZ), "config": str(_low_thresholds(tmp_path))}
+    with Launch(spec, args, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
             image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
             info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS)
             every = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
             node.create_subscription(Detection3DArray, "/n2d/dope/detections", received.append, every)
+            node.create_subscription(MarkerArray, "/n2d/dope/markers", markers.append, every)
             _wait(lambda: image_pub.get_subscription_count(), 60, "dope_node", logs)
             assert any("box (fp32, tracking)" in line for line in logs), logs[-10:]
+            listed = list_parameters(node, "/n2d/dope")
+            assert "config_file" in listed and "detect.peak_threshold" not in listed and len(listed) <= 15, listed
             stamps = []
             for rgb, K in _frames(dataset) * 3:
                 stamp = stamp_msg(time.time())
@@ -283,6 +302,12 @@ def test_dope_node_refines_and_tracks_by_default(dope_model, ros_domain, tmp_pat
             for msg in received:
                 assert all(d.id in ("box:detected", "box:tracked") for d in msg.detections)
                 assert all(0.0 <= d.results[0].hypothesis.score <= 1.0 for d in msg.detections)
+            _wait(lambda: len(markers) >= len(stamps), 30, "a marker array per frame", logs)
+            # each frame clears the old markers; a found object gets the mesh of the model it was trained on
+            assert all(m.markers[0].action == Marker.DELETEALL for m in markers)
+            meshes = [k for m in markers for k in m.markers[1:]]  # none when the refinement drops every box
+            assert all(k.type == Marker.MESH_RESOURCE and k.ns == "box" for k in meshes)
+            assert all(k.mesh_resource == (model_dir / "object" / "mesh.obj").resolve().as_uri() for k in meshes)
             assert not launch.dead(), logs[-20:]
     assert not any("Traceback" in line or "skipped" in line for line in logs), "\n".join(logs)
 

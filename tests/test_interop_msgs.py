@@ -1,5 +1,6 @@
-"""The vision_msgs and tf2_msgs types n2d publishes are the upstream ones: their type hashes (REP 2011), computed by
-rosidl from the upstream packages' definitions written out here, equal the hashes of the installed packages."""
+"""The vision_msgs, visualization_msgs and tf2_msgs types n2d publishes are the upstream ones: their type hashes
+(REP 2011), computed by rosidl from the upstream packages' definitions written out here, equal the hashes of the
+installed packages."""
 
 import json
 import sys
@@ -16,10 +17,25 @@ UPSTREAM = {
         "Detection3D": "std_msgs/Header header\nObjectHypothesisWithPose[] results\nBoundingBox3D bbox\nstring id\n",
         "Detection3DArray": "std_msgs/Header header\nDetection3D[] detections\n",
     },
+    # ros2/common_interfaces (Jazzy), visualization_msgs/msg: the Marker messages
+    "visualization_msgs": {
+        "UVCoordinate": "float32 u\nfloat32 v\n",
+        "MeshFile": "string filename\nuint8[] data\n",
+        "Marker": "".join(f"int32 {name}={value}\n" for value, name in enumerate(
+            "ARROW CUBE SPHERE CYLINDER LINE_STRIP LINE_LIST CUBE_LIST SPHERE_LIST POINTS TEXT_VIEW_FACING "
+            "MESH_RESOURCE TRIANGLE_LIST ARROW_STRIP".split()))
+        + "int32 ADD=0\nint32 MODIFY=0\nint32 DELETE=2\nint32 DELETEALL=3\n"
+        + "std_msgs/Header header\nstring ns\nint32 id\nint32 type\nint32 action\ngeometry_msgs/Pose pose\n"
+        + "geometry_msgs/Vector3 scale\nstd_msgs/ColorRGBA color\nbuiltin_interfaces/Duration lifetime\n"
+        + "bool frame_locked\ngeometry_msgs/Point[] points\nstd_msgs/ColorRGBA[] colors\nstring texture_resource\n"
+        + "sensor_msgs/CompressedImage texture\nUVCoordinate[] uv_coordinates\nstring text\nstring mesh_resource\n"
+        + "MeshFile mesh_file\nbool mesh_use_embedded_materials\n",
+        "MarkerArray": "Marker[] markers\n",
+    },
     # ros2/geometry2 (Jazzy), tf2_msgs/msg
     "tf2_msgs": {"TFMessage": "geometry_msgs/TransformStamped[] transforms\n"},
 }
-DEPENDENCIES = ("std_msgs", "geometry_msgs", "builtin_interfaces")
+DEPENDENCIES = ("std_msgs", "geometry_msgs", "builtin_interfaces", "sensor_msgs")
 
 
 def upstream_hashes(tmp_path: Path, package: str) -> dict[str, str]:

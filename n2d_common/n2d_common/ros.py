@@ -33,7 +33,7 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image
 from unique_identifier_msgs.msg import UUID
 
-from n2d_common.config import flat_fields, from_dict
+from n2d_common.config import flat_fields, from_dict, merge, read_mapping, to_dict
 from n2d_common.errors import Cancelled, ConfigError, DeviceError, N2DError
 from n2d_common.frames import quat_from_R
 
@@ -76,23 +76,82 @@ def _param_value(value: Any) -> Any:
     return value
 
 
+CONFIG_FILE_DOC = ("YAML file of the node's settings, the expert ones included: a mapping laid out as the parameter "
+                   "names (`reconstruct: {neus: {steps: 2000}}`, or dotted keys), or a ROS 2 parameters file "
+                   "(`node_name: {ros__parameters: {...}}`); the node's parameters override it.")
+
+
+def user_parameters(cls: type) -> list[str]:
+    """The dotted names of config `cls` that become ROS parameters: its `ROS_PARAMETERS` (the user tier), or
+    every field of a config that names none."""
+    names = [name for name, *_ in flat_fields(cls)]
+    tier = getattr(cls, "ROS_PARAMETERS", None)
+    if tier is None:
+        return names
+    unknown = sorted(set(tier) - set(names))
+    if unknown:
+        raise ValueError(f"{cls.__name__}.ROS_PARAMETERS names no field: {', '.join(unknown)}")
+    return list(tier)
+
+
+def _unflatten(data: dict) -> dict:
+    """A mapping with dotted keys (`a.b: 1`, at any depth) as nested sections (`a: {b: 1}`)."""
+    out: dict = {}
+    for key, value in data.items():
+        *sections, leaf = str(key).split(".")
+        node = out
+        for section in sections:
+            node = node.setdefault(section, {})
+        value = _unflatten(value) if isinstance(value, dict) else value
+        node[leaf] = merge(node[leaf], value) if isinstance(value, dict) and isinstance(node.get(leaf), dict) \
+            else value
+    return out
+
+
+def read_node_config(cls: type[C], path: str) -> C:
+    """Config `cls` from the defaults and the YAML file at `path` (see CONFIG_FILE_DOC); ConfigError naming the
+    file when it cannot be read or holds a bad value."""
+    data = read_mapping(path)
+    if len(data) == 1:  # a ROS 2 parameters file: {node_name: {ros__parameters: {...}}}, node name or /**
+        (section,) = data.values()
+        if isinstance(section, dict) and "ros__parameters" in section:
+            data = section["ros__parameters"] or {}
+    try:
+        return from_dict(cls, merge(to_dict(cls()), _unflatten(data)))
+    except ConfigError as exc:
+        raise ConfigError(f"config_file {path}: {exc.message}", exc.hint) from None
+
+
 def declare_config(node: Node, cls: type[C]) -> C:
-    """Declare one parameter per config field (dotted names, the field docstring as description) and
-    return the config built from their values; a bad value raises ConfigError naming the parameter."""
-    data: dict = {}
-    for name, _tp, default, doc in flat_fields(cls):
-        value = _param_value(default)
+    """Declare the user tier of config `cls` as parameters (dotted names, the field docstring as description,
+    read-only: the node reads them once) and `config_file`, and return the config: defaults, then the config
+    file, then the parameters. An expert setting given as a parameter or a bad value raises ConfigError naming
+    it."""
+    path = node.declare_parameter("config_file", "", ParameterDescriptor(description=CONFIG_FILE_DOC,
+                                                                         read_only=True)).value
+    base = read_node_config(cls, path) if path else cls()
+    tier = set(user_parameters(cls))
+    given = set(getattr(node, "_parameter_overrides", {}))  # rclpy keeps the --ros-args -p values there
+    expert = sorted(name for name, *_ in flat_fields(cls) if name in given and name not in tier)
+    if expert:
+        raise ConfigError(f"{', '.join(expert)}: expert setting(s), not parameters of {node.get_name()}",
+                          "set them in the YAML file given as the config_file parameter (docs/ros.md)")
+    data = to_dict(base)
+    for name, _tp, _default, doc in flat_fields(cls):
+        if name not in tier:
+            continue
+        *sections, leaf = name.split(".")
+        section = data
+        for part in sections:
+            section = section[part]
+        value = _param_value(section[leaf])
         if value is None or isinstance(value, dict) or (isinstance(value, list) and not value):
-            continue  # ROS parameters cannot be None, mappings or untyped empty lists: keep the dataclass default
+            continue  # ROS parameters cannot be None, mappings or untyped empty lists: keep the config's value
         # A float parameter given as a whole number (`rate_hz:=5` from a launch file) arrives as an integer,
         # which rclpy refuses for a float parameter; let those through and have from_dict convert them.
         floats = isinstance(value, float) or (isinstance(value, list) and any(isinstance(v, float) for v in value))
-        param = node.declare_parameter(name, value, ParameterDescriptor(description=doc, dynamic_typing=floats))
-        node_dict = data
-        *sections, leaf = name.split(".")
-        for section in sections:
-            node_dict = node_dict.setdefault(section, {})
-        node_dict[leaf] = param.value
+        descriptor = ParameterDescriptor(description=doc, dynamic_typing=floats, read_only=True)
+        section[leaf] = node.declare_parameter(name, value, descriptor).value
     try:
         return from_dict(cls, data)
     except ConfigError as exc:

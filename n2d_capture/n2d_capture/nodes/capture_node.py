@@ -27,6 +27,12 @@ from n2d_interfaces.action import Capture
 class CaptureNodeConfig:
     """Parameters of capture_node."""
 
+    ROS_PARAMETERS = ("capture.sweep.views", "capture.board.squares_x", "capture.board.squares_y",
+                      "capture.board.square_m", "capture.board.marker_m", "capture.board.dictionary",
+                      "capture.intrinsics", "capture.pose_from", "image_topic", "camera_info_topic", "rotate_action",
+                      "use_header_stamp", "preview_width")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     """Defaults of every capture (a goal's `views` and `config_yaml` override them)."""
     image_topic: str = "camera/image_raw"

@@ -29,6 +29,11 @@ from n2d_interfaces.action import Rotate
 class TurntableNodeConfig:
     """Parameters of turntable_node."""
 
+    ROS_PARAMETERS = ("turntable.port", "turntable.baud", "turntable.servo_id", "turntable.protocol",
+                      "turntable.gear_ratio", "turntable.velocity_limit_rad_s", "turntable.acceleration_rad_s2",
+                      "turntable.zero_offset_rad", "turntable.retries", "joint_state_rate_hz", "joint_name")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     turntable: TurntableConfig = field(default_factory=TurntableConfig)
     """The servo and its motion profile."""
     joint_state_rate_hz: float = 20.0

@@ -25,6 +25,12 @@ from n2d_interfaces.action import GenerateDataset
 class DatasetNodeConfig:
     """Parameters of dataset_node."""
 
+    ROS_PARAMETERS = ("dataset.frames", "dataset.seed", "dataset.workers", "dataset.photoreal_frames",
+                      "dataset.camera.width", "dataset.camera.height", "dataset.camera.focal_px",
+                      "dataset.scene.distractors", "dataset.scene.in_hand", "dataset.render.engine",
+                      "dataset.render.samples", "dataset.render.device", "dataset.render.threads")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """Defaults of every dataset."""
 

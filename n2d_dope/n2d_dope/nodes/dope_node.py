@@ -15,8 +15,10 @@ Published under the node's namespace: `dope/pose_<object>` (PoseStamped, the bes
 when found), `dope/detections` (Detection3DArray, one per processed frame, empty when nothing was found; each
 detection's `id` is `<object>:detected` or `<object>:tracked`, its score the network's confidence or, refined
 or tracked, the silhouette score 0..1), `dope/overlay` (rgb8, the fitted cuboids and object axes drawn) and
-`dope/latency_ms` (Float64, image stamp to published detections); and on `/tf` (`publish_tf`) each object's
-frame `tf_prefix` + name (`n2d/box`) under the camera's frame. Detections are `vision_msgs` messages. Poses are
+`dope/latency_ms` (Float64, image stamp to published detections), `dope/markers` (MarkerArray, each object's
+mesh at its best pose, `publish_scene`); on `/tf` (`publish_tf`) each object's frame `tf_prefix` + name (`n2d/box`)
+under the camera's frame; and, where moveit_msgs is installed, each object on `/collision_object`
+(`n2d_dope.nodes.scene_msgs`). Detections are `vision_msgs` messages. Poses are
 in the camera's OpenCV optical frame, metres; each header is the image's, with `camera_frame` as frame_id when
 set. Every `log_period_s` it logs frames received, frames processed and the latency.
 """
@@ -27,6 +29,7 @@ import re
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import cv2
@@ -45,6 +48,7 @@ from vision_msgs.msg import (
     ObjectHypothesis,
     ObjectHypothesisWithPose,
 )
+from visualization_msgs.msg import MarkerArray
 
 from n2d_common.errors import ConfigError, N2DError
 from n2d_common.frames import project, transform_points
@@ -61,6 +65,14 @@ from n2d_common.ros import (
 )
 from n2d_dope.config import DetectConfig, RefineConfig
 from n2d_dope.infer import Detection, DopeModel
+from n2d_dope.nodes.scene_msgs import (
+    collision_mesh,
+    collision_object,
+    collision_object_fields,
+    marker_array,
+    mesh_uri,
+    moveit_modules,
+)
 from n2d_dope.track import TrackConfig, Tracker
 
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
@@ -72,6 +84,11 @@ MODELS_DOC = ("DOPE model directories (from `n2d train`), one per object: a stri
 @dataclass
 class DopeNodeConfig:
     """Parameters of dope_node, besides `models` (a string or a string array, declared by the node itself)."""
+
+    ROS_PARAMETERS = ("precision", "threads", "image_topic", "camera_info_topic", "camera_frame", "max_rate_hz",
+                      "publish_overlay", "publish_tf", "tf_prefix", "publish_scene", "refine", "track",
+                      "redetect_frames")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
 
     precision: Literal["fp32", "int8"] = "fp32"
     """ONNX model of each directory to run: fp32, or int8 (statically quantised; faster on most CPUs)."""
@@ -91,6 +108,9 @@ class DopeNodeConfig:
     """Broadcast each object's pose on /tf: camera frame -> `tf_prefix` + object name."""
     tf_prefix: str = "n2d/"
     """Prefix of the objects' TF frame names."""
+    publish_scene: bool = True
+    """Publish `dope/markers` (each object's mesh at its pose, for RViz) and, where moveit_msgs is installed,
+    each object as a CollisionObject on /collision_object (MoveIt's planning scene)."""
     log_period_s: float = 10.0
     """Log frames received, frames processed and the latency this often (seconds); 0: never."""
     refine: bool = True
@@ -187,6 +207,13 @@ class DopeNode(Node):
         self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS) if self.cfg.publish_tf else None
         self.overlay_pub = (self.create_publisher(Image, "dope/overlay", PUBLISH_QOS) if self.cfg.publish_overlay
                             else None)
+        self.object_dirs = self._object_dirs() if self.cfg.publish_scene else {}
+        self.markers_pub = (self.create_publisher(MarkerArray, "dope/markers", PUBLISH_QOS) if self.cfg.publish_scene
+                            else None)
+        self.moveit = moveit_modules() if self.cfg.publish_scene else None
+        self.collision_pub = (self.create_publisher(self.moveit[0].CollisionObject, "/collision_object", TF_QOS)
+                              if self.moveit else None)
+        self._in_scene: set[str] = set()
 
         self._new = threading.Condition()
         self._image: Image | None = None
@@ -221,6 +248,30 @@ class DopeNode(Node):
             except ConfigError as exc:  # a network without its object's model still detects
                 self.get_logger().warning(f"{directory}: no refinement or tracking: {exc.message} ({exc.hint})")
         return DopeModel(directory, **kwargs)
+
+    def _object_dirs(self) -> dict[str, Path]:
+        """Each object's model directory, for the markers and collision objects (objects without one are left out)."""
+        out = {}
+        for model in self.models:
+            try:
+                out[model.name] = model.object_dir()
+            except ConfigError:
+                self.get_logger().warning(f"{model.name}: no object model, so no marker or collision object")
+        return out
+
+    def publish_scene(self, best: list[Detection], header: Header) -> None:
+        """The objects' mesh markers and, with MoveIt, their collision objects (added once with the mesh, then
+        moved)."""
+        self.markers_pub.publish(marker_array(best, header, {n: mesh_uri(d) for n, d in self.object_dirs.items()}))
+        if self.collision_pub is None:
+            return
+        for det in best:
+            if det.object in self.object_dirs:
+                object_id = self.cfg.tf_prefix + det.object
+                mesh = collision_mesh(self.object_dirs[det.object]) if object_id not in self._in_scene else None
+                fields = collision_object_fields(det, header.frame_id, object_id, mesh)
+                self.collision_pub.publish(collision_object(fields, header, self.moveit))
+                self._in_scene.add(object_id)
 
     def on_image(self, msg: Image) -> None:
         with self._new:
@@ -275,14 +326,17 @@ class DopeNode(Node):
         header = Header(stamp=image.header.stamp, frame_id=self.cfg.camera_frame or image.header.frame_id)
         found = [det for model in self.models if model.name not in self.trackers for det in model.detect(rgb, K)]
         found += self._track(rgb, K, stamp_seconds(image.header.stamp))
-        transforms = []
+        bests = []
         for name, pub in self.pose_pubs.items():
             best = max((det for det in found if det.object == name), key=lambda det: det.score, default=None)
             if best is not None:
                 pub.publish(pose_stamped(best, header))
-                transforms.append(transform_stamped(best, header, self.cfg.tf_prefix + name))
-        if self.tf_pub is not None and transforms and header.frame_id:  # TF needs the camera's frame name
-            self.tf_pub.publish(TFMessage(transforms=transforms))
+                bests.append(best)
+        if self.tf_pub is not None and bests and header.frame_id:  # TF needs the camera's frame name
+            self.tf_pub.publish(TFMessage(transforms=[transform_stamped(b, header, self.cfg.tf_prefix + b.object)
+                                                      for b in bests]))
+        if self.markers_pub is not None:
+            self.publish_scene(bests, header)
         self.detections_pub.publish(Detection3DArray(
             header=header, detections=[detection3d(det, self.cuboids[det.object], header) for det in found]))
         latency_ms = (self.get_clock().now().nanoseconds * 1e-9 - stamp_seconds(image.header.stamp)) * 1e3

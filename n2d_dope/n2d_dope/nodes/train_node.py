@@ -30,6 +30,11 @@ MACHINE_FIELDS = ("device", "threads")
 class TrainNodeConfig:
     """Parameters of train_node."""
 
+    ROS_PARAMETERS = ("train.backbone", "train.input_size", "train.init_model", "train.epochs", "train.max_minutes",
+                      "train.batch_size", "train.lr", "train.symmetry_aware", "train.holdout", "train.device",
+                      "train.threads", "train.seed", "train.int8")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     train: TrainConfig = field(default_factory=TrainConfig)
     """Defaults of every training run."""
 

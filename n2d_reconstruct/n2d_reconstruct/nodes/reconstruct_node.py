@@ -25,6 +25,12 @@ from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 class ReconstructNodeConfig:
     """Parameters of reconstruct_node."""
 
+    ROS_PARAMETERS = ("reconstruct.method", "reconstruct.object_name", "reconstruct.holdout_every",
+                      "reconstruct.symmetry", "reconstruct.min_views", "reconstruct.mesh.voxel_m",
+                      "reconstruct.mesh.target_faces", "reconstruct.refine.enabled", "reconstruct.texture.size_px",
+                      "reconstruct.neus.steps", "reconstruct.neus.device", "reconstruct.neus.seed")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     reconstruct: ReconstructConfig = field(default_factory=ReconstructConfig)
     """Defaults of every reconstruction."""
 

@@ -41,6 +41,11 @@ from n2d_sim.world import SimWorldConfig
 class SimCameraNodeConfig:
     """Parameters of sim_camera_node."""
 
+    ROS_PARAMETERS = ("world.object", "world.width", "world.height", "world.focal_px", "world.camera_distance_m",
+                      "world.camera_elevation_deg", "world.board_visible", "world.samples", "world.device",
+                      "world.threads", "world.clutter", "rate_hz", "frame_id", "noise_seed")
+    """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
+
     world: SimWorldConfig = field(default_factory=SimWorldConfig)
     """The rendered world: object, camera, board, lights, noise."""
     rate_hz: float = 10.0
