@@ -52,6 +52,8 @@ host (640x480 rgb8 at 30 Hz: 6-12 of 30 frames/s arrive best effort, all 30 reli
 PUBLISH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 """Publishing frames and state: keep the newest only; reliable, so best-effort and reliable subscribers both match."""
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+"""/tf as tf2's TransformBroadcaster publishes it."""
 
 
 def ros_environment(domain_id: int | None = None, env: dict | None = None) -> dict:
