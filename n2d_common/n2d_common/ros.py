@@ -27,6 +27,8 @@ from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -299,6 +301,27 @@ class LiveSubscription:
         if self.subscription is not None:
             self._node.destroy_subscription(self.subscription)
             self.subscription = None
+
+
+def refuse_invalid_transitions(node: LifecycleNodeMixin) -> None:
+    """Have a lifecycle node answer `success: false` to a transition its state does not have.
+
+    rclpy's `change_state` service raises on one (e.g. configure while finalized, `ros2 lifecycle set` with a
+    wrong label), which ends the executor's spin and with it the node process; rclcpp answers false.
+    """
+    service = node._service_change_state
+    change = service.callback
+
+    def guarded(request, response):
+        try:
+            return change(request, response)
+        except rclpy_implementation.RCLError as exc:
+            node.get_logger().warning(f"lifecycle transition {request.transition.id} "
+                                      f"{request.transition.label!r} refused: {str(exc).splitlines()[0]}")
+            response.success = False
+            return response
+
+    service.callback = guarded
 
 
 def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int = 4) -> None:

@@ -39,7 +39,7 @@ from n2d_capture.turntable import (
     TurntableConfig,
 )
 from n2d_common.errors import Cancelled, DeviceError, N2DError
-from n2d_common.ros import PUBLISH_QOS, TF_QOS, declare_config, run_node
+from n2d_common.ros import PUBLISH_QOS, TF_QOS, declare_config, refuse_invalid_transitions, run_node
 from n2d_interfaces.action import Rotate
 
 FAULTS = (ServoHardwareError, ServoCommError, ServoDisconnected)
@@ -95,6 +95,7 @@ class TurntableNode(LifecycleNode):
 
     def __init__(self):
         super().__init__(self.NAME)
+        refuse_invalid_transitions(self)
         self.cfg = declare_config(self, TurntableNodeConfig)
         self.turntable: Turntable | None = None
         """The open driver, from configure to cleanup (None when unconfigured)."""
