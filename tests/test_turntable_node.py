@@ -4,20 +4,25 @@ lifecycle: every transition through the lifecycle services, with the emulator's 
 a servo fault mid-motion and a pulled cable end in the error transition, and the node comes back; the plate
 on /tf matches the joint state."""
 
+import json
 import math
 import time
 
+import numpy as np
 import pytest
 from action_msgs.msg import GoalStatus
 from helpers import wait_future
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from tf2_msgs.msg import TFMessage
 
 from n2d.launch_description import LaunchSpec, NodeSpec
 from n2d.launcher import Launch
-from n2d_common.ros import SENSOR_QOS, TF_QOS, SafeActionClient, background_node, send_goal
+from n2d_capture.turntable_frame import TurntableFit
+from n2d_common.frames import make_T, rot_z
+from n2d_common.ros import SENSOR_QOS, TF_QOS, TF_STATIC_QOS, SafeActionClient, background_node, send_goal
 from n2d_interfaces.action import Rotate
 
 
@@ -137,17 +142,30 @@ def _port_quiet(sim, for_s: float = 0.6) -> bool:
 
 
 @pytest.mark.timeout(180)
-def test_lifecycle_transitions_torque_goals_and_plate_tf(sim, client_node):
+def test_lifecycle_transitions_torque_goals_and_plate_tf(sim, client_node, tmp_path):
     logs = []
-    with _turntable_launch(sim.link, logs, autostart=False) as launch:
-        states, tf = [], []
+    T_cam_turntable = make_T(Rotation.from_rotvec([2.0, 0.3, -0.4]).as_matrix(), [0.1, -0.05, 0.6])
+    fit = TurntableFit(np.eye(4), T_cam_turntable, 0, np.zeros(1), np.zeros(1), np.zeros(1), np.ones(1, bool),
+                       servo_offset_rad=0.3, servo_scale=1.0, servo_residual_deg=np.zeros(1), board_tilt_deg=0.0)
+    (tmp_path / "capture.json").write_text(json.dumps({"turntable_fit": fit.to_dict()}))
+    with _turntable_launch(sim.link, logs, autostart=False, camera_session=str(tmp_path)) as launch:
+        states, tf, tf_static = [], [], []
         client_node.create_subscription(JointState, "/n2d/turntable/joint_states", states.append, SENSOR_QOS)
         client_node.create_subscription(TFMessage, "/tf", tf.append, TF_QOS)
+        client_node.create_subscription(TFMessage, "/tf_static", tf_static.append, TF_STATIC_QOS)
         client = SafeActionClient(client_node, Rotate, "/n2d/turntable/rotate")
         assert client.wait_for_server(timeout_sec=30), logs
         lifecycle = Lifecycle(client_node)
         assert lifecycle.state() == State.PRIMARY_STATE_UNCONFIGURED
         assert not _torque(sim) and _port_quiet(sim)
+        # latched on /tf_static from start-up on: where the capture session's turntable sits in the camera
+        _wait(lambda: tf_static, what="nothing on /tf_static")
+        t = tf_static[0].transforms[0]
+        assert (t.header.frame_id, t.child_frame_id) == ("camera_optical_frame", "turntable_base")
+        expected = T_cam_turntable @ rot_z(-0.3)
+        v, q = t.transform.translation, t.transform.rotation
+        np.testing.assert_allclose([v.x, v.y, v.z], expected[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix(), expected[:3, :3], atol=1e-9)
 
         assert lifecycle.set(Transition.TRANSITION_CONFIGURE), logs
         assert lifecycle.state() == State.PRIMARY_STATE_INACTIVE

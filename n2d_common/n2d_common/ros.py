@@ -20,7 +20,7 @@ import numpy as np
 import rclpy
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose
+from geometry_msgs.msg import Pose, Transform, Vector3
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.action.client import ClientGoalHandle
@@ -56,6 +56,8 @@ PUBLISH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=R
 """Publishing frames and state: keep the newest only; reliable, so best-effort and reliable subscribers both match."""
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 """/tf as tf2's TransformBroadcaster publishes it."""
+TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""/tf_static as tf2's StaticTransformBroadcaster publishes it: latched, so late subscribers get it."""
 
 
 def ros_environment(domain_id: int | None = None, env: dict | None = None) -> dict:
@@ -266,6 +268,13 @@ def pose_msg(T: np.ndarray) -> Pose:
     q = quat_from_R(T[:3, :3])
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
     return pose
+
+
+def transform_msg(T: np.ndarray) -> Transform:
+    """geometry_msgs/Transform of a 4x4 transform."""
+    pose = pose_msg(T)
+    return Transform(translation=Vector3(x=pose.position.x, y=pose.position.y, z=pose.position.z),
+                     rotation=pose.orientation)
 
 
 class LiveSubscription:

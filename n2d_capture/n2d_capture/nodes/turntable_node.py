@@ -9,18 +9,21 @@ communication fault.
 
 From configured on it publishes `turntable/joint_states` (sensor_msgs/JointState, joint `turntable_plate`,
 plate angle in rad, multi-turn) and `/tf` (`base_frame` to `plate_frame`, a rotation about +z by the plate
-angle) at `joint_state_rate_hz`. While active it serves the `turntable/rotate` action (n2d_interfaces/Rotate:
-feedback with angle, progress, stage and ETA; cancel brakes the plate); goals are refused otherwise. One goal
-at a time: a second goal while the plate moves is rejected. Parameters are the fields of `TurntableConfig`
-(port, baud, servo_id, protocol, gear_ratio, velocity_limit_rad_s, ...) and of `TurntableNodeConfig`.
+angle) at `joint_state_rate_hz`; with `camera_session`, the camera to the base on `/tf_static`. While active
+it serves the `turntable/rotate` action (n2d_interfaces/Rotate: feedback with angle, progress, stage and ETA;
+cancel brakes the plate); goals are refused otherwise. One goal at a time: a second goal while the plate moves
+is rejected. Parameters are the fields of `TurntableConfig` (port, baud, servo_id, protocol, gear_ratio,
+velocity_limit_rad_s, ...) and of `TurntableNodeConfig`.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import rclpy
 from geometry_msgs.msg import Quaternion, Transform, TransformStamped
@@ -38,8 +41,17 @@ from n2d_capture.turntable import (
     Turntable,
     TurntableConfig,
 )
-from n2d_common.errors import Cancelled, DeviceError, N2DError
-from n2d_common.ros import PUBLISH_QOS, TF_QOS, declare_config, refuse_invalid_transitions, run_node
+from n2d_capture.turntable_frame import T_cam_base, TurntableFit
+from n2d_common.errors import Cancelled, ConfigError, DeviceError, N2DError
+from n2d_common.ros import (
+    PUBLISH_QOS,
+    TF_QOS,
+    TF_STATIC_QOS,
+    declare_config,
+    refuse_invalid_transitions,
+    run_node,
+    transform_msg,
+)
 from n2d_interfaces.action import Rotate
 
 FAULTS = (ServoHardwareError, ServoCommError, ServoDisconnected)
@@ -76,12 +88,19 @@ class TurntableNodeConfig:
     """TF frame of the turntable's base: origin on the plate's axis, on its top face, z up."""
     plate_frame: str = "turntable_plate"
     """TF frame of the plate: base_frame turned about +z by the plate angle."""
+    camera_session: str = ""
+    """A capture session directory: publish where its fitted turntable sits in the camera, camera_frame to
+    base_frame on /tf_static (the camera and the servo's zero as in that capture); empty: none."""
+    camera_frame: str = "camera_optical_frame"
+    """The camera's optical frame (OpenCV axes) for camera_session."""
 
     def __post_init__(self):
         if not 0 < self.joint_state_rate_hz <= 200:
             raise ValueError("joint_state_rate_hz must be in (0, 200]")
         if self.publish_tf and not (self.base_frame and self.plate_frame and self.base_frame != self.plate_frame):
             raise ValueError("base_frame and plate_frame must be two different, non-empty frame names")
+        if self.camera_session and not self.camera_frame:
+            raise ValueError("camera_frame must not be empty with camera_session")
 
 
 def plate_transform(angle_rad: float, header: Header, child_frame: str) -> TransformStamped:
@@ -111,6 +130,7 @@ class TurntableNode(LifecycleNode):
         self._connect_wait_s = self.cfg.connect_timeout_s
         self.state_pub = self.create_publisher(JointState, "turntable/joint_states", PUBLISH_QOS)
         self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS) if self.cfg.publish_tf else None
+        self.tf_static_pub = self._publish_camera_base() if self.cfg.camera_session else None
         # In the default (mutually exclusive) group, with the lifecycle services: a fault's transition from the
         # timer never runs alongside a requested one.
         self.create_timer(1.0 / self.cfg.joint_state_rate_hz, self.on_timer)
@@ -120,6 +140,21 @@ class TurntableNode(LifecycleNode):
         if self.cfg.autostart and not self._bring_up(self.cfg.connect_timeout_s):
             self._release()
             raise self.last_error or DeviceError("turntable: the lifecycle transitions at start-up failed")
+
+    def _publish_camera_base(self):
+        """camera_frame to base_frame from the session's turntable fit, once, latched on /tf_static."""
+        path = Path(self.cfg.camera_session) / "capture.json"
+        try:
+            fit = TurntableFit.from_dict(json.loads(path.read_text())["turntable_fit"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(f"camera_session: cannot read the turntable fit from {path}: {exc}",
+                              "give a capture session directory (it holds capture.json)") from None
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.cfg.camera_frame)
+        transform = TransformStamped(header=header, child_frame_id=self.cfg.base_frame,
+                                     transform=transform_msg(T_cam_base(fit)))
+        publisher = self.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS)
+        publisher.publish(TFMessage(transforms=[transform]))
+        return publisher
 
     # ---------------------------------------------------------------- transitions
     def _bring_up(self, timeout_s: float) -> bool:
