@@ -2,7 +2,8 @@
 
 `Turntable(TurntableConfig(...))` opens the serial port, finds the servo, puts an X-series servo
 (Protocol 2.0) in extended-position (multi-turn) mode with a trapezoidal velocity profile, and
-turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. Angles are plate
+turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. `open(torque=False)` and
+`set_torque` leave the plate free (torque off) until the torque is turned on, as a lifecycle node does. Angles are plate
 angles in radians, after the gear ratio and the zero offset. Failures raise typed `DeviceError`s
 with a hint. Timeouts and CRC errors are retried, and a dropped serial port is reopened.
 All port access holds one lock, so a ROS timer may call `angle()` while `rotate_to` runs in
