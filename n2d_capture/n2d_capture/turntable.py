@@ -2,10 +2,11 @@
 
 `Turntable(TurntableConfig(...))` opens the serial port, finds the servo, puts an X-series servo
 (Protocol 2.0) in extended-position (multi-turn) mode with a trapezoidal velocity profile, and
-turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. `open(torque=False)` and
-`set_torque` leave the plate free (torque off) until the torque is turned on, as a lifecycle node does. Angles are plate
-angles in radians, after the gear ratio and the zero offset. Failures raise typed `DeviceError`s
-with a hint. Timeouts and CRC errors are retried, and a dropped serial port is reopened.
+turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. `open(torque=False)`
+and `set_torque(False)` leave the plate free (torque off) until `set_torque(True)`, as a lifecycle
+node does. Angles are plate angles in radians, after the gear ratio and the zero offset. Failures
+raise typed `DeviceError`s with a hint. Timeouts and CRC errors are retried, and a dropped serial
+port is reopened.
 All port access holds one lock, so a ROS timer may call `angle()` while `rotate_to` runs in
 another thread.
 """
@@ -266,12 +267,13 @@ class Turntable:
         servo reports a hardware error (only a reboot clears it).
         """
         with self._lock:
-            self._torque_wanted = on
             self._target_rad = None
             if on:
                 self._write_goal(self._present_ticks())
                 self._write(self._addr_torque(), 1, 1, "torque on")
+                self._torque_wanted = True
             else:
+                self._torque_wanted = False
                 self._write(self._addr_torque(), 1, 0, "torque off", check_alert=False)
 
     def torque(self) -> bool:
