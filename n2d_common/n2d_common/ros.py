@@ -318,7 +318,9 @@ def refuse_invalid_transitions(node: LifecycleNodeMixin) -> None:
     rclpy's `change_state` service raises on one (e.g. configure while finalized, `ros2 lifecycle set` with a
     wrong label), which ends the executor's spin and with it the node process; rclcpp answers false.
     """
-    service = node._service_change_state
+    service = getattr(node, "_service_change_state", None)
+    if service is None:  # enable_communication_interface=False: no services
+        return
     change = service.callback
 
     def guarded(request, response):
