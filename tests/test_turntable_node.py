@@ -271,3 +271,14 @@ def test_pulled_cable_is_the_error_transition_and_autostart_comes_back(sim, clie
         assert goal.accepted
         assert wait_future(goal.get_result_async()).status == GoalStatus.STATUS_SUCCEEDED
         assert not launch.dead()
+
+
+@pytest.mark.timeout(60)
+def test_a_configure_request_without_a_servo_fails_and_the_node_waits(tmp_path, client_node):
+    logs = []
+    with _turntable_launch(str(tmp_path / "ttyUSB9"), logs, autostart=False, connect_timeout_s=0.5) as launch:
+        lifecycle = Lifecycle(client_node)
+        assert not lifecycle.set(Transition.TRANSITION_CONFIGURE)
+        assert lifecycle.state() == State.PRIMARY_STATE_UNCONFIGURED
+        _wait(lambda: any("configure failed: cannot open serial port" in line for line in logs), what=logs[-5:])
+        assert not launch.dead()
