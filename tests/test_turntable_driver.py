@@ -42,6 +42,30 @@ def test_open_configures_extended_position_mode(sim):
 
 
 @pytest.mark.timeout(60)
+def test_torque_off_until_set_torque_and_kept_across_a_reconnect(sim):
+    table = Turntable(fast(sim)).open(torque=False)
+    try:
+        assert not sim.control.state()["torque"] and not table.torque()
+        with pytest.raises(DeviceError, match="torque is off"):
+            table.rotate_to(1.0)
+        table.set_torque(True)
+        assert sim.control.state()["torque"] and table.torque()
+        assert table.rotate_to(1.0) == pytest.approx(1.0, abs=0.002)
+        table.set_torque(False)
+        sim.control.disconnect()
+        sim.control.reconnect()
+        assert table.angle() == pytest.approx(1.0, abs=0.002)  # reconnected, and the torque stays off
+        assert not sim.control.state()["torque"]
+        sim.control.fault("overload")
+        with pytest.raises(ServoHardwareError):
+            table.set_torque(True)  # only a reboot clears the error
+        table.reboot()
+        assert not sim.control.state()["torque"]  # the reboot keeps it off, as asked
+    finally:
+        table.close()
+
+
+@pytest.mark.timeout(60)
 def test_rotate_90_degrees_takes_the_profile_time_and_settles(sim):
     progress = []
     with Turntable(fast(sim)) as table:

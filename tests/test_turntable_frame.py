@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from n2d_capture.board import CalibrationError, board_pose, detect_board
-from n2d_capture.turntable_frame import TurntableFit, camera_pose, fit_turntable
+from n2d_capture.turntable_frame import T_cam_base, TurntableFit, camera_pose, fit_turntable
 from n2d_common.formats.board import T_plate_board
 from n2d_common.frames import inv_T, make_T, rot_z
 from n2d_sim import world
@@ -112,6 +112,18 @@ def test_servo_fallback_refuses_a_servo_that_does_not_follow_the_plate():
         camera_pose(no_servo, plate_angle_rad=0.5)
     with pytest.raises(ValueError, match="board pose or its plate angle"):
         camera_pose(no_servo)
+
+
+def test_the_turntable_base_in_the_camera_turned_by_the_servo_angle_is_the_plate_frame():
+    delta, servo_zero, a0 = math.radians(30), math.radians(10), math.radians(15)
+    board_on_plate = rot_z(delta) @ make_T(np.eye(3), [0.03, -0.02, 0.0]) @ T_plate_board(CFG.board)
+    alphas = a0 + np.radians(np.arange(0, 360, 30.0))
+    fit = fit_turntable(_sweep(board_on_plate, alphas), alphas + servo_zero)
+    for a in alphas:  # turntable_node's base_frame to plate_frame at the servo's angle a + servo_zero
+        rot, trans = _errors(T_cam_base(fit) @ rot_z(a + servo_zero), A_SIM @ rot_z(a + delta))
+        assert rot < 0.1 and trans < 1.0
+    with pytest.raises(CalibrationError, match="servo"):
+        T_cam_base(fit_turntable(_sweep(board_on_plate, alphas)))
 
 
 def test_fit_round_trips_through_json():

@@ -2,9 +2,11 @@
 
 `Turntable(TurntableConfig(...))` opens the serial port, finds the servo, puts an X-series servo
 (Protocol 2.0) in extended-position (multi-turn) mode with a trapezoidal velocity profile, and
-turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. Angles are plate
-angles in radians, after the gear ratio and the zero offset. Failures raise typed `DeviceError`s
-with a hint. Timeouts and CRC errors are retried, and a dropped serial port is reopened.
+turns the plate with `rotate_to` / `rotate_by`, waiting until it has settled. `open(torque=False)`
+and `set_torque(False)` leave the plate free (torque off) until `set_torque(True)`, as a lifecycle
+node does. Angles are plate angles in radians, after the gear ratio and the zero offset. Failures
+raise typed `DeviceError`s with a hint. Timeouts and CRC errors are retried, and a dropped serial
+port is reopened.
 All port access holds one lock, so a ROS timer may call `angle()` while `rotate_to` runs in
 another thread.
 """
@@ -215,12 +217,17 @@ class Turntable:
         self._velocity_limit_units = 32767
         self._goal_ticks: int | None = None
         self._target_rad: float | None = None
+        self._torque_wanted = True
 
     # ---------------------------------------------------------------- lifecycle
-    def open(self) -> Turntable:
-        """Open the port, find the servo, configure it and turn its torque on; returns self."""
+    def open(self, torque: bool = True) -> Turntable:
+        """Open the port, find the servo, configure it and, with `torque`, turn its torque on; returns self.
+
+        With `torque` false the torque is turned off (the plate turns freely) until `set_torque(True)`.
+        """
         if self._opened:
             return self
+        self._torque_wanted = torque
         self._connect_first()
         try:
             self._configure()
@@ -253,10 +260,33 @@ class Turntable:
     def is_open(self) -> bool:
         return self._opened
 
+    def set_torque(self, on: bool) -> None:
+        """Turn the servo's torque on (holding the plate where it is) or off (the plate turns freely).
+
+        The choice survives a reconnect and a reboot. Turning it on raises ServoHardwareError while the
+        servo reports a hardware error (only a reboot clears it).
+        """
+        with self._lock:
+            self._target_rad = None
+            if on:
+                self._write_goal(self._present_ticks())
+                self._write(self._addr_torque(), 1, 1, "torque on")
+                self._torque_wanted = True
+            else:
+                self._torque_wanted = False
+                self._write(self._addr_torque(), 1, 0, "torque off", check_alert=False)
+
+    def torque(self) -> bool:
+        """Whether the servo's torque is on now (read from the servo)."""
+        return bool(self._read(self._addr_torque(), 1, "read torque", check_alert=False))
+
     # ---------------------------------------------------------------- motion
-    def angle(self) -> float:
-        """Plate angle now [rad], multi-turn, after gear ratio and zero offset."""
-        return self._ticks_to_angle(self._present_ticks(check_alert=False))
+    def angle(self, check_alert: bool = False) -> float:
+        """Plate angle now [rad], multi-turn, after gear ratio and zero offset.
+
+        With `check_alert`, a hardware error the servo flags in its reply raises ServoHardwareError.
+        """
+        return self._ticks_to_angle(self._present_ticks(check_alert=check_alert))
 
     def rotate_to(self, angle_rad: float, velocity_rad_s: float | None = None,
                   on_progress: ProgressCallback | None = None,
@@ -274,6 +304,8 @@ class Turntable:
         """
         if not math.isfinite(angle_rad):
             raise ConfigError(f"rotate_to: angle must be finite, got {angle_rad}")
+        if not self._torque_wanted:
+            raise DeviceError("rotate_to: the servo's torque is off", "call set_torque(True) first")
         goal = self._angle_to_ticks(angle_rad)
         self._set_velocity(velocity_rad_s or self.cfg.velocity_limit_rad_s)
         start = self._present_ticks()
@@ -466,9 +498,11 @@ class Turntable:
             torque = self._read(P1_ADDR_TORQUE_ENABLE, 1, "read torque")
         self._write_velocity_units(self._velocity_units or self._velocity_to_units(self.cfg.velocity_limit_rad_s),
                                    force=True)
-        if not torque:  # hold where it is: goal = present before the torque comes on
+        if self._torque_wanted and not torque:  # hold where it is: goal = present before the torque comes on
             self._write_goal(self._present_ticks())
             self._write(self._addr_torque(), 1, 1, "torque on")
+        elif torque and not self._torque_wanted:
+            self._write(self._addr_torque(), 1, 0, "torque off")
 
     # ---------------------------------------------------------------- transactions
     def _read(self, addr: int, size: int, what: str, check_alert: bool = True) -> int:

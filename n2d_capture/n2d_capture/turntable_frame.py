@@ -156,6 +156,21 @@ def fit_turntable(T_cam_boards: Sequence[np.ndarray | None], plate_angles_rad: S
                         board_tilt_deg=tilt)
 
 
+def T_cam_base(fit: TurntableFit) -> np.ndarray:
+    """4x4 transform from the turntable base into the fixed camera: the plate frame at servo angle 0.
+
+    The plate frame at servo angle theta is then `T_cam_base @ rot_z(theta)` (turntable_node's
+    `base_frame` to `plate_frame`). Needs servo angles that follow the plate 1:1 (`servo_usable`); the
+    origin is where the axis meets the board's top plane.
+    """
+    if not fit.servo_usable:
+        raise CalibrationError("the turntable fit has no servo angles that follow the plate 1:1 "
+                               f"(servo_scale {fit.servo_scale}), so the servo's zero is not placed in the camera",
+                               "capture a sweep through turntable_node (or the turntable driver) with the right "
+                               "gear_ratio")
+    return fit.T_cam_turntable @ rot_z(-fit.servo_offset_rad)
+
+
 def camera_pose(fit: TurntableFit, T_cam_board: np.ndarray | None = None,
                 plate_angle_rad: float | None = None) -> np.ndarray:
     """4x4 pose of the camera in the plate-attached turntable frame (T_turntable_cam) for one view.

@@ -20,13 +20,15 @@ import numpy as np
 import rclpy
 from action_msgs.msg import GoalStatus
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose
+from geometry_msgs.msg import Pose, Transform, Vector3
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
+from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -52,6 +54,10 @@ host (640x480 rgb8 at 30 Hz: 6-12 of 30 frames/s arrive best effort, all 30 reli
 PUBLISH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
 """Publishing frames and state: keep the newest only; reliable, so best-effort and reliable subscribers both match."""
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+"""/tf as tf2's TransformBroadcaster publishes it."""
+TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""/tf_static as tf2's StaticTransformBroadcaster publishes it: latched, so late subscribers get it."""
 
 
 def ros_environment(domain_id: int | None = None, env: dict | None = None) -> dict:
@@ -323,6 +329,13 @@ def pose_msg(T: np.ndarray) -> Pose:
     return pose
 
 
+def transform_msg(T: np.ndarray) -> Transform:
+    """geometry_msgs/Transform of a 4x4 transform."""
+    pose = pose_msg(T)
+    return Transform(translation=Vector3(x=pose.position.x, y=pose.position.y, z=pose.position.z),
+                     rotation=pose.orientation)
+
+
 class LiveSubscription:
     """A subscription to a live stream (camera images and their CameraInfo) with `LIVE_QOS`.
 
@@ -356,6 +369,29 @@ class LiveSubscription:
         if self.subscription is not None:
             self._node.destroy_subscription(self.subscription)
             self.subscription = None
+
+
+def refuse_invalid_transitions(node: LifecycleNodeMixin) -> None:
+    """Have a lifecycle node answer `success: false` to a transition its state does not have.
+
+    rclpy's `change_state` service raises on one (e.g. configure while finalized, `ros2 lifecycle set` with a
+    wrong label), which ends the executor's spin and with it the node process; rclcpp answers false.
+    """
+    service = getattr(node, "_service_change_state", None)
+    if service is None:  # enable_communication_interface=False: no services
+        return
+    change = service.callback
+
+    def guarded(request, response):
+        try:
+            return change(request, response)
+        except rclpy_implementation.RCLError as exc:
+            node.get_logger().warning(f"lifecycle transition {request.transition.id} "
+                                      f"{request.transition.label!r} refused: {str(exc).splitlines()[0]}")
+            response.success = False
+            return response
+
+    service.callback = guarded
 
 
 def run_node(node_cls: type[Node], args: list[str] | None = None, threads: int = 4) -> None:

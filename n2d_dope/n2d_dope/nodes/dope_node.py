@@ -37,7 +37,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovariance, Transform, TransformStamped, Vector3
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float64, Header
 from tf2_msgs.msg import TFMessage
@@ -55,6 +54,7 @@ from n2d_common.frames import project, transform_points
 from n2d_common.images import draw_axes, draw_cuboid
 from n2d_common.ros import (
     PUBLISH_QOS,
+    TF_QOS,
     LiveSubscription,
     declare_config,
     image_msg,
@@ -75,8 +75,6 @@ from n2d_dope.nodes.scene_msgs import (
 )
 from n2d_dope.track import TrackConfig, Tracker
 
-TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-"""/tf as tf2's TransformBroadcaster publishes it."""
 MODELS_DOC = ("DOPE model directories (from `n2d train`), one per object: a string array, or one string of comma- "
               "or space-separated directories.")
 
