@@ -33,7 +33,7 @@ from scipy.spatial import QhullError
 
 from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, stage_output
-from n2d_common.errors import ConfigError
+from n2d_common.errors import ConfigError, ContractError
 from n2d_common.formats.model import diameter
 from n2d_common.frames import inv_T, make_T, transform_points
 from n2d_common.progress import Progress, ProgressFn, no_progress
@@ -211,8 +211,8 @@ def detect_units(size: float, units: str, cfg: ImportConfig) -> tuple[str, float
         for unit, lo, hi in AUTO_UNITS:
             if lo <= size <= hi:
                 metres = size * SCALE_TO_M[unit]
-                return unit, SCALE_TO_M[unit], (f"diameter {size:.4g} in the file's numbers: {lo:g} to {hi:g} reads "
-                                                f"as {_unit_name(unit)} ({_length(metres)} across)")
+                return unit, SCALE_TO_M[unit], (f"its diameter, {size:.4g} in the file's numbers, is within "
+                                                f"{lo:g}..{hi:g}: {_unit_name(unit)}, {_length(metres)} across")
         readings = ", ".join(f"{_length(size * SCALE_TO_M[u])} in {u}" for u, _, _ in AUTO_UNITS)
         raise ConfigError(f"cannot tell the units of the mesh: its diameter is {size:.4g} in the file's numbers "
                           f"({readings}), and objects n2d models are 1 cm to 1.5 m across",
@@ -223,7 +223,7 @@ def detect_units(size: float, units: str, cfg: ImportConfig) -> tuple[str, float
                           f"file's numbers): n2d models objects of {_length(cfg.min_diameter_m)} to "
                           f"{_length(cfg.max_diameter_m)}", "check the unit (--units, or --units auto), or scale the "
                           "mesh")
-    return units, SCALE_TO_M[units], f"given ({_unit_name(units)}: {_length(metres)} across)"
+    return units, SCALE_TO_M[units], f"given: {_unit_name(units)}, {_length(metres)} across"
 
 
 def _unit_name(unit: str) -> str:
@@ -253,10 +253,12 @@ def import_model(mesh_path: str | Path, out: str | Path, cfg: ImportConfig, *, o
     Raises ConfigError for a file that is not a usable mesh (see `read_source`, `detect_units`) and for an
     undecidable symmetry, ContractError for an output that exists (without `overwrite`); nothing is written then.
     """
-    mesh_path = Path(mesh_path)
-    progress(Progress(0.0, "load", message=mesh_path.name))
+    mesh_path, out = Path(mesh_path), Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:  # before any work
+        raise ContractError(f"{out} already exists", "choose another output path, or pass --overwrite")
     src = read_source(mesh_path, cfg.colour_rgb)
     unit, scale, why = detect_units(_diameter(src.vertices), cfg.units, cfg)
+    progress(Progress(0.1, "load", message=f"{mesh_path.name}: {len(src.faces)} faces, {src.appearance}"))
     up = cfg.up if cfg.up != "auto" else ("y" if FORMATS[mesh_path.suffix.lower()] in ("glb", "gltf") else "z")
     T_upright_source = make_T(UP_TO_Z[up], np.zeros(3))  # metres, the source's axes turned Z up
     upright = transform_points(T_upright_source, scale * src.vertices)
