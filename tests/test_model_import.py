@@ -144,6 +144,21 @@ def test_vertex_coloured_ply_in_cm_renders_as_its_source(tmp_path):
                      _render_model(tmp_path / "model", T_cam_source @ T_source_obj))
 
 
+def test_a_dense_mesh_is_decimated_and_keeps_its_colours(tmp_path):
+    V_cm, faces, colours = _coloured_ball(tmp_path)
+    summary = import_model(tmp_path / "ball.ply", tmp_path / "model", _cfg(up="y", max_faces=400))
+    source, T_source_obj = _manifest_source(tmp_path / "model")
+    assert source["decimated"] and source["faces"] == len(faces) and summary["model"]["faces"] <= 420
+    V_m = 0.01 * V_cm
+    for T_cam_source in _views(V_m.mean(0), 0.5):
+        (rgb_s, mask_s), (rgb_i, mask_i) = (_vertex_coloured(V_m, faces, colours, T_cam_source),
+                                            _render_model(tmp_path / "model", T_cam_source @ T_source_obj))
+        assert (mask_s ^ mask_i).sum() < 0.03 * mask_s.sum()  # the decimated outline is close to the source's
+        both = mask_s & mask_i
+        assert np.abs(rgb_s[both].mean(0) - rgb_i[both].mean(0)).max() < 4.0
+        assert np.median(np.abs(rgb_s[both].astype(float) - rgb_i[both]).max(1)) < 8.0
+
+
 def test_glb_in_metres_is_read_y_up(tmp_path):
     """A model's own mesh.glb (glTF: Y up, metres) imports to the same object frame as its mesh.obj."""
     _textured_box(tmp_path)

@@ -14,6 +14,8 @@ they take a reconstruction.
 - **Appearance**: whatever colour the source has is baked into the reconstruct stage's UV atlas (xatlas,
   `texture.unwrap`): a texture sampled at the source's UVs (glTF's base colour factor applied), vertex or face
   colours interpolated barycentrically, or one plain colour (`colour_rgb`, else the material's, else grey).
+  A mesh of more than `max_faces` faces is decimated first, and each texel takes the colour of the nearest
+  point of the source surface.
 - **Writing**: everything is checked and computed before the output is opened; it is then written into
   `<out>.partial` and renamed into place (`contracts.stage_output`), refusing an existing output without
   `overwrite`.
@@ -27,9 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import fast_simplification
 import numpy as np
 import trimesh
-from scipy.spatial import QhullError
+from scipy.spatial import QhullError, cKDTree
 
 from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, stage_output
@@ -40,7 +43,7 @@ from n2d_common.progress import Progress, ProgressFn, no_progress
 from n2d_common.raster import sample_bilinear
 from n2d_common.symmetry import find_symmetries, to_models_info
 from n2d_reconstruct.export import object_frame, write_model
-from n2d_reconstruct.texture import TextureConfig, bake_from_surface, unwrap
+from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_surface, unwrap
 
 FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": "gltf", ".off": "off"}
 """File suffixes read, and the trimesh file type of each."""
@@ -77,6 +80,10 @@ class ImportConfig:
     """Smaller models are refused, whatever the units, metres."""
     max_diameter_m: float = 2.0
     """Larger models are refused, whatever the units (the dataset stage takes nothing larger), metres."""
+    max_faces: int = 50_000
+    """Meshes with more faces are decimated to this many (quadric, fast-simplification) and their colours
+    carried over from the nearest point of the source surface: xatlas takes about a minute per 40k faces on a
+    CPU, and a reconstruction has 40k (0: never decimate)."""
     texture: TextureConfig = field(default_factory=TextureConfig)
     """UV atlas and albedo size."""
 
@@ -88,6 +95,8 @@ class ImportConfig:
             raise ConfigError(f"colour {tuple(self.colour_rgb)} is out of range", "give R,G,B in 0..255")
         if not 0 < self.min_diameter_m < self.max_diameter_m:
             raise ConfigError("need 0 < min_diameter_m < max_diameter_m")
+        if self.max_faces != 0 and self.max_faces < 100:
+            raise ConfigError(f"max_faces {self.max_faces} is too few", "use 0 (never decimate) or >= 100")
 
 
 ColourFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -246,6 +255,26 @@ def _diameter(vertices: np.ndarray) -> float:
                           "give a closed surface mesh of the object") from None
 
 
+def _decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    """The mesh decimated to about `faces` faces (quadric error, as the reconstruction's clean-up)."""
+    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float32), mesh.faces.astype(np.int64),
+                                        target_reduction=1.0 - faces / len(mesh.faces))
+    return trimesh.Trimesh(v.astype(np.float64), f, process=True)
+
+
+def _nearest_colour(vertices: np.ndarray, src: SourceMesh, points: np.ndarray, k: int = 8) -> np.ndarray:
+    """N x 3 colours of the source surface (`vertices`: its vertices where `points` are) nearest each point: exact
+    over the triangles of the k nearest face centroids."""
+    triangles = vertices[src.faces]
+    _, near = cKDTree(triangles.mean(1)).query(points, k=k)
+    closest = trimesh.triangles.closest_point(triangles[near.ravel()], np.repeat(points, k, 0)).reshape(-1, k, 3)
+    best = np.linalg.norm(closest - points[:, None], axis=2).argmin(1)
+    rows = np.arange(len(points))
+    face = near[rows, best]
+    bary = np.clip(trimesh.triangles.points_to_barycentric(triangles[face], closest[rows, best]), 0.0, 1.0)
+    return src.colour(face, bary / np.maximum(bary.sum(1, keepdims=True), 1e-12))
+
+
 def import_model(mesh_path: str | Path, out: str | Path, cfg: ImportConfig, *, overwrite: bool = False,
                  progress: ProgressFn = no_progress) -> dict:
     """Import the mesh file `mesh_path` as the model directory `out`; returns the summary also in the manifest.
@@ -261,17 +290,27 @@ def import_model(mesh_path: str | Path, out: str | Path, cfg: ImportConfig, *, o
     progress(Progress(0.1, "load", message=f"{mesh_path.name}: {len(src.faces)} faces, {src.appearance}"))
     up = cfg.up if cfg.up != "auto" else ("y" if FORMATS[mesh_path.suffix.lower()] in ("glb", "gltf") else "z")
     T_upright_source = make_T(UP_TO_Z[up], np.zeros(3))  # metres, the source's axes turned Z up
-    upright = transform_points(T_upright_source, scale * src.vertices)
-    T_source_object = inv_T(T_upright_source) @ object_frame(upright)
-    mesh = trimesh.Trimesh(transform_points(inv_T(T_source_object), scale * src.vertices), src.faces, process=False)
+    upright = trimesh.Trimesh(transform_points(T_upright_source, scale * src.vertices), src.faces, process=False)
+    decimated = bool(cfg.max_faces) and len(src.faces) > cfg.max_faces
+    if decimated:
+        progress(Progress(0.15, "decimate", message=f"{len(src.faces)} to {cfg.max_faces} faces"))
+        upright = _decimate(upright, cfg.max_faces)
+    T_upright_object = object_frame(upright.vertices)
+    T_source_object = inv_T(T_upright_source) @ T_upright_object
+    mesh = trimesh.Trimesh(transform_points(inv_T(T_upright_object), upright.vertices), upright.faces, process=False)
     progress(Progress(0.2, "texture", message=f"baking the {src.appearance} (xatlas)"))
-    model = unwrap(mesh, cfg.texture)  # the same faces in the same order, so source face f is model face f
-    model.albedo = bake_from_surface(model, src.colour, cfg.texture.size_px)
+    model = unwrap(mesh, cfg.texture)  # the same faces in the same order: without decimation, source face f is f
+    if decimated:  # the colour of the nearest source point, the source placed in the object frame
+        at = transform_points(inv_T(T_source_object), scale * src.vertices)
+        model.albedo = bake_from_function(model, lambda p, n: _nearest_colour(at, src, p), cfg.texture.size_px)
+    else:
+        model.albedo = bake_from_surface(model, src.colour, cfg.texture.size_px)
     progress(Progress(0.5, "symmetry"))
     symmetries = (find_symmetries(model.vertices, model.faces, face_uvs=model.face_uvs, texture=model.albedo)
                   if cfg.symmetry == "auto" else None)
     source = {"file": str(mesh_path.absolute()), "format": FORMATS[mesh_path.suffix.lower()], "units": unit,
               "units_reason": why, "scale_to_m": scale, "up": up, "appearance": src.appearance,
+              "faces": len(src.faces), "decimated": decimated,
               "T_source_object": np.round(T_source_object, 12).tolist()}
     progress(Progress(0.8, "export"))
     with stage_output(out, "model", overwrite=overwrite, config=to_dict(cfg)) as writer:
