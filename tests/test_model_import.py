@@ -207,6 +207,14 @@ def test_bad_files_are_refused_with_a_hint(tmp_path):
         with pytest.raises(ConfigError, match=message) as err:
             import_model(tmp_path / name, tmp_path / "model", _cfg())
         assert err.value.hint
+    _textured_box(tmp_path)
+    (tmp_path / "tex.png").unlink()
+    with pytest.raises(ConfigError, match="names the texture tex.png") as err:
+        import_model(tmp_path / "box.obj", tmp_path / "model", _cfg())
+    assert "copy the texture" in err.value.hint
+    (tmp_path / "box.mtl").unlink()
+    with pytest.raises(ConfigError, match="uses the material file box.mtl"):
+        import_model(tmp_path / "box.obj", tmp_path / "model", _cfg())
     assert not (tmp_path / "model").exists() and not (tmp_path / "model.partial").exists()
 
 

@@ -128,6 +128,8 @@ def read_source(path: Path, colour_rgb: tuple[int, int, int] | None = None) -> S
         raise ConfigError(f"{path}: {suffix or 'no suffix'} is not a mesh format n2d reads", hint)
     if path.stat().st_size == 0:
         raise ConfigError(f"{path} is empty (0 bytes)", "export the mesh again; the file holds nothing")
+    if suffix == ".obj":
+        _check_obj_materials(path)
     try:
         scene = trimesh.load(path, file_type=FORMATS[suffix], force="scene", process=False)
     except Exception as exc:  # trimesh's loaders raise anything from ValueError to struct.error on bad input
@@ -138,6 +140,25 @@ def read_source(path: Path, colour_rgb: tuple[int, int, int] | None = None) -> S
         raise ConfigError(f"{path} has no faces (a point cloud or lines only?)",
                           "give a surface mesh with triangles or polygons")
     return _merge(parts, colour_rgb)
+
+
+def _check_obj_materials(path: Path) -> None:
+    """Refuse an OBJ whose MTL files or textures are missing: trimesh would load it grey without a word."""
+    for line in re.findall(r"^mtllib[ \t]+(.+?)[ \t]*$", path.read_text(errors="replace"), re.M):
+        names = [line] if (path.parent / line).is_file() else line.split()  # one name with spaces, or several
+        for mtl in (path.parent / name for name in names):
+            if not mtl.is_file():
+                raise ConfigError(f"{path} uses the material file {mtl.name}, which is not in {path.parent}",
+                                  "copy the .mtl file (and its textures) next to the .obj")
+            _check_textures(mtl)
+
+
+def _check_textures(mtl: Path) -> None:
+    """Refuse an MTL file whose diffuse textures are missing."""
+    for texture in re.findall(r"^[ \t]*map_Kd[ \t]+(?:.*[ \t])?(\S+)[ \t]*$", mtl.read_text(errors="replace"), re.M):
+        if not (mtl.parent / texture).is_file():
+            raise ConfigError(f"{mtl} names the texture {texture}, which is not in {mtl.parent}",
+                              "copy the texture next to the .mtl file, or delete its map_Kd line for a plain model")
 
 
 def _merge(parts: list[trimesh.Trimesh], colour_rgb) -> SourceMesh:
