@@ -197,12 +197,13 @@ def test_given_units_override_and_absurd_sizes_are_refused(tmp_path):
 
 def test_bad_files_are_refused_with_a_hint(tmp_path):
     (tmp_path / "empty.obj").write_bytes(b"")
-    (tmp_path / "cloud.ply").write_bytes(b"")
     trimesh.PointCloud(np.random.default_rng(0).random((50, 3))).export(tmp_path / "cloud.ply")
     (tmp_path / "junk.glb").write_bytes(b"not a glb file at all")
     (tmp_path / "mesh.fbx").write_bytes(b"x")
+    square = trimesh.Trimesh([[0, 0, 0], [50, 0, 0], [50, 50, 0], [0, 50, 0]], [[0, 1, 2], [0, 2, 3]])
+    square.export(tmp_path / "flat.stl")
     cases = [("empty.obj", "is empty"), ("cloud.ply", "has no faces"), ("junk.glb", "not a readable GLB"),
-             ("mesh.fbx", "not a mesh format"), ("missing.stl", "does not exist")]
+             ("mesh.fbx", "not a mesh format"), ("missing.stl", "does not exist"), ("flat.stl", "is flat")]
     for name, message in cases:
         with pytest.raises(ConfigError, match=message) as err:
             import_model(tmp_path / name, tmp_path / "model", _cfg())

@@ -41,9 +41,9 @@ from n2d_common.formats.model import diameter
 from n2d_common.frames import inv_T, make_T, transform_points
 from n2d_common.progress import Progress, ProgressFn, no_progress
 from n2d_common.raster import sample_bilinear
-from n2d_common.symmetry import find_symmetries, to_models_info
+from n2d_common.symmetry import AmbiguousSymmetry, Symmetries, find_symmetries, to_models_info
 from n2d_reconstruct.export import object_frame, write_model
-from n2d_reconstruct.texture import TextureConfig, bake_from_function, bake_from_surface, unwrap
+from n2d_reconstruct.texture import TextureConfig, TexturedMesh, bake_from_function, bake_from_surface, unwrap
 
 FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": "gltf", ".off": "off"}
 """File suffixes read, and the trimesh file type of each."""
@@ -296,6 +296,18 @@ def _nearest_colour(vertices: np.ndarray, src: SourceMesh, points: np.ndarray, k
     return src.colour(face, bary / np.maximum(bary.sum(1, keepdims=True), 1e-12))
 
 
+def _symmetries(model: TexturedMesh, cfg: ImportConfig) -> Symmetries | None:
+    """The model's symmetries as n2d reconstruct finds them (None with `symmetry: none`)."""
+    if cfg.symmetry == "none":
+        return None
+    try:
+        return find_symmetries(model.vertices, model.faces, face_uvs=model.face_uvs, texture=model.albedo)
+    except AmbiguousSymmetry as exc:
+        raise AmbiguousSymmetry(exc.message, "import with --symmetry none, then write the symmetries into "
+                                "models_info.json by hand (BOP's symmetries_discrete / symmetries_continuous)",
+                                exc.residual) from None
+
+
 def import_model(mesh_path: str | Path, out: str | Path, cfg: ImportConfig, *, overwrite: bool = False,
                  progress: ProgressFn = no_progress) -> dict:
     """Import the mesh file `mesh_path` as the model directory `out`; returns the summary also in the manifest.
@@ -327,8 +339,7 @@ def import_model(mesh_path: str | Path, out: str | Path, cfg: ImportConfig, *, o
     else:
         model.albedo = bake_from_surface(model, src.colour, cfg.texture.size_px)
     progress(Progress(0.5, "symmetry"))
-    symmetries = (find_symmetries(model.vertices, model.faces, face_uvs=model.face_uvs, texture=model.albedo)
-                  if cfg.symmetry == "auto" else None)
+    symmetries = _symmetries(model, cfg)
     source = {"file": str(mesh_path.absolute()), "format": FORMATS[mesh_path.suffix.lower()], "units": unit,
               "units_reason": why, "scale_to_m": scale, "up": up, "appearance": src.appearance,
               "faces": len(src.faces), "decimated": decimated,
