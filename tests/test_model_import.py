@@ -170,8 +170,8 @@ def test_glb_in_metres_is_read_y_up(tmp_path):
         _assert_same(_render_model(tmp_path / "a", T_cam_obj), _render_model(tmp_path / "b", T_cam_obj))
 
 
-@pytest.mark.parametrize(("diameter", "unit"), [(0.08, "m"), (1.2, "m"), (8.0, "cm"), (15.0, "cm"), (25.0, "mm"),
-                                                (800.0, "mm")])
+@pytest.mark.parametrize(("diameter", "unit"), [(0.08, "m"), (1.5, "m"), (8.0, "cm"), (20.0, "cm"), (25.0, "mm"),
+                                                (1500.0, "mm")])
 def test_units_from_the_size(diameter, unit):
     found, scale, why = detect_units(diameter, "auto", ImportConfig())
     assert found == unit and 0.01 <= diameter * scale <= 1.5

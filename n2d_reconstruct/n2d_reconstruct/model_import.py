@@ -5,8 +5,8 @@ mesh.glb, models_info.json with the detected symmetries, n2d.json), so `n2d data
 they take a reconstruction.
 
 - **Units**: the file's numbers are scaled to metres. `auto` reads them from the mesh's diameter d (in the file's
-  numbers): objects a robot grasps are 1 cm to 1.5 m across, so 0.01 <= d <= 1.5 is metres, 1.5 < d < 20
-  centimetres and 20 <= d <= 1500 millimetres; anything else is refused with a hint to give the unit.
+  numbers): objects a robot grasps are 1 cm to 1.5 m across, so 0.01 < d <= 1.5 is metres, 1.5 < d <= 20
+  centimetres and 20 < d <= 1500 millimetres; anything else is refused with a hint to give the unit.
 - **Frame**: the source's up axis (`up`; auto: +Y for glTF, as its spec says, +Z otherwise) is turned to +Z, and
   the object frame is put at the bounding-box centre (`export.object_frame`), as a reconstruction's is.
   `T_source_object` (4 x 4, metres) maps object-frame points into the source's frame: a point of the file is
@@ -50,8 +50,8 @@ FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": 
 SCALE_TO_M = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 """Metres per unit of the file's numbers."""
 AUTO_UNITS = (("m", 0.01, 1.5), ("cm", 1.5, 20.0), ("mm", 20.0, 1500.0))
-"""(unit, lowest, highest diameter in the file's numbers) read as that unit by `units: auto`: 1 cm to 1.5 m in
-metres, 1.5 to 20 cm in centimetres, 2 cm to 1.5 m in millimetres."""
+"""(unit, lo, hi): `units: auto` reads a diameter lo < d <= hi in the file's numbers as that unit: 1 cm to 1.5 m
+in metres, 1.5 to 20 cm in centimetres, 2 cm to 1.5 m in millimetres."""
 UP_TO_Z = {"z": np.eye(3), "-z": np.diag([1.0, -1.0, -1.0]),
            "y": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), "-y": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),
            "x": np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]]), "-x": np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])}
@@ -239,7 +239,7 @@ def detect_units(size: float, units: str, cfg: ImportConfig) -> tuple[str, float
     `units`; ConfigError when no unit makes it an object n2d models."""
     if units == "auto":
         for unit, lo, hi in AUTO_UNITS:
-            if lo <= size <= hi:
+            if lo < size <= hi:
                 metres = size * SCALE_TO_M[unit]
                 return unit, SCALE_TO_M[unit], (f"its diameter, {size:.4g} in the file's numbers, is within "
                                                 f"{lo:g}..{hi:g}: {_unit_name(unit)}, {_length(metres)} across")
@@ -262,13 +262,14 @@ def _unit_name(unit: str) -> str:
 
 def _length(metres: float) -> str:
     """A length in the unit that reads best: 2 km, 20 m, 35 cm, 4.2 mm."""
-    for unit, scale in (("km", 1000.0), ("m", 1.0), ("cm", 0.01), ("mm", 0.001)):
-        if metres >= scale or unit == "mm":
+    for unit, scale in (("km", 1000.0), ("m", 1.0), ("cm", 0.01)):
+        if metres >= scale:
             return f"{metres / scale:.3g} {unit}"
-    raise AssertionError
+    return f"{metres / 0.001:.3g} mm"
 
 
 def _diameter(vertices: np.ndarray) -> float:
+    """The mesh's diameter in its own numbers; ConfigError for a flat mesh (no convex hull)."""
     try:
         return diameter(vertices)
     except (QhullError, ValueError):
