@@ -284,17 +284,23 @@ def _decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
     return trimesh.Trimesh(v.astype(np.float64), f, process=True)
 
 
-def _nearest_colour(vertices: np.ndarray, src: SourceMesh, points: np.ndarray, k: int = 8) -> np.ndarray:
+def _nearest_colour(vertices: np.ndarray, src: SourceMesh, points: np.ndarray, k: int = 8,
+                    block: int = 1 << 15) -> np.ndarray:
     """N x 3 colours of the source surface (`vertices`: its vertices where `points` are) nearest each point: exact
-    over the triangles of the k nearest face centroids."""
+    over the triangles of the k nearest face centroids, `block` points at a time (memory stays under 1 GB)."""
     triangles = vertices[src.faces]
-    _, near = cKDTree(triangles.mean(1)).query(points, k=k)
-    closest = trimesh.triangles.closest_point(triangles[near.ravel()], np.repeat(points, k, 0)).reshape(-1, k, 3)
-    best = np.linalg.norm(closest - points[:, None], axis=2).argmin(1)
-    rows = np.arange(len(points))
-    face = near[rows, best]
-    bary = np.clip(trimesh.triangles.points_to_barycentric(triangles[face], closest[rows, best]), 0.0, 1.0)
-    return src.colour(face, bary / np.maximum(bary.sum(1, keepdims=True), 1e-12))
+    tree = cKDTree(triangles.mean(1))
+    out = np.zeros((len(points), 3))
+    for i in range(0, len(points), block):
+        p = points[i:i + block]
+        _, near = tree.query(p, k=k)
+        closest = trimesh.triangles.closest_point(triangles[near.ravel()], np.repeat(p, k, 0)).reshape(-1, k, 3)
+        best = np.linalg.norm(closest - p[:, None], axis=2).argmin(1)
+        rows = np.arange(len(p))
+        face = near[rows, best]
+        bary = np.clip(trimesh.triangles.points_to_barycentric(triangles[face], closest[rows, best]), 0.0, 1.0)
+        out[i:i + block] = src.colour(face, bary / np.maximum(bary.sum(1, keepdims=True), 1e-12))
+    return out
 
 
 def _symmetries(model: TexturedMesh, cfg: ImportConfig) -> Symmetries | None:
