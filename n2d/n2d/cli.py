@@ -265,7 +265,8 @@ def cmd_model_import(args) -> int:
     print(f"model import: units {src['units']} ({src['units_reason']}); up axis {src['up']}; {src['appearance']}")
     symmetric = ("none" if sym["group_order"] == 1 else "continuous" if sym["group_order"] is None
                  else f"{sym['group_order']:g}-fold")
-    print(f"model import: {model['faces']} faces, size {' x '.join(f'{x:.1f}' for x in model['size_mm'])} mm, "
+    faces = f"{model['faces']} faces" + (f" (decimated from {src['faces']})" if src["decimated"] else "")
+    print(f"model import: {faces}, size {' x '.join(f'{x:.1f}' for x in model['size_mm'])} mm, "
           f"symmetry {symmetric if sym['mode'] == 'auto' else 'not detected (--symmetry none)'}")
     print(f"model import: wrote {args.out}/ (mesh.obj, mesh.glb, models_info.json; n2d.json has T_source_object)")
     return 0
