@@ -240,6 +240,38 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _rgb(text: str) -> tuple[int, int, int]:
+    """R,G,B (0..255) of --colour."""
+    parts = text.replace(" ", "").split(",")
+    if len(parts) != 3 or not all(p.isdigit() and int(p) <= 255 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r} is not R,G,B with each in 0..255 (e.g. 200,30,30)")
+    return tuple(int(p) for p in parts)
+
+
+def cmd_model_import(args) -> int:
+    import re
+
+    from n2d_reconstruct.model_import import ImportConfig, import_model
+
+    cfg = _config(ImportConfig, args)
+    for name, value in (("units", args.units), ("up", args.up), ("colour_rgb", args.colour),
+                        ("symmetry", args.symmetry)):
+        if value is not None:
+            setattr(cfg, name, value)
+    cfg.object_name = args.name or (re.sub(r"[^A-Za-z0-9_-]", "_", args.mesh.stem).strip("_-") or "object")
+    cfg.__post_init__()
+    s = import_model(args.mesh, args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("import"))
+    src, model, sym = s["source"], s["model"], s["symmetry"]
+    print(f"model import: units {src['units']} ({src['units_reason']}); up axis {src['up']}; {src['appearance']}")
+    symmetric = ("none" if sym["group_order"] == 1 else "continuous" if sym["group_order"] is None
+                 else f"{sym['group_order']:g}-fold")
+    faces = f"{model['faces']} faces" + (f" (decimated from {src['faces']})" if src["decimated"] else "")
+    print(f"model import: {faces}, size {' x '.join(f'{x:.1f}' for x in model['size_mm'])} mm, "
+          f"symmetry {symmetric if sym['mode'] == 'auto' else 'not detected (--symmetry none)'}")
+    print(f"model import: wrote {args.out}/ (mesh.obj, mesh.glb, models_info.json; n2d.json has T_source_object)")
+    return 0
+
+
 def cmd_dataset(args) -> int:
     import threading
 
@@ -423,6 +455,29 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_options(p)
     p.set_defaults(func=cmd_reconstruct)
 
+    p = sub.add_parser("model-import", aliases=["model import"],
+                       help="turn a mesh file (OBJ, PLY, GLB/glTF, STL) into a model directory (n2d model import)",
+                       description="Bring your own mesh: an OBJ with its MTL and texture, a PLY with vertex colours, "
+                       "a GLB/glTF or an STL becomes a model directory as n2d reconstruct writes it (metres, object "
+                       "frame at the bounding-box centre, Z up, the colours baked into a UV atlas, symmetries "
+                       "detected), for n2d dataset and n2d train. The units are read from the size (a diameter of "
+                       "0.01-1.5 in the file is metres, 1.5-20 centimetres, 20-1500 millimetres) unless --units "
+                       "gives them; n2d.json records them and T_source_object, the object frame in the file's frame.")
+    p.add_argument("mesh", type=Path, help="mesh file (.obj, .ply, .glb, .gltf, .stl, .off)")
+    p.add_argument("out", type=Path, help="model directory to write")
+    p.add_argument("--units", choices=["auto", "m", "cm", "mm", "in"], help="unit of the file's numbers "
+                   "(default: the config's, auto)")
+    p.add_argument("--up", choices=["auto", "x", "y", "z", "-x", "-y", "-z"], help="the file's up axis, turned "
+                   "to +Z (default auto: y for glTF, z otherwise)")
+    p.add_argument("--colour", type=_rgb, metavar="R,G,B", help="colour (0..255) of a mesh without texture or "
+                   "vertex colours (default: its material's, else grey)")
+    p.add_argument("--name", help="object name (default: the file name)")
+    p.add_argument("--symmetry", choices=["auto", "none"], help="detect the symmetries (auto, default) or "
+                   "write none")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing model (once the new one is done)")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_model_import)
+
     p = sub.add_parser("dataset", help="render a domain-randomised, annotated dataset (BOP + DOPE) of models",
                        description="Render random scenes of the models (random floors, walls, distractors, lights, "
                        "objects standing as captured or resting on a face, optional in-hand gripper) with Cycles, or "
@@ -506,8 +561,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:2] == ["capture", "import"]:
-        argv[:2] = ["capture-import"]
+    if argv[:2] in (["capture", "import"], ["model", "import"]):
+        argv[:2] = [f"{argv[0]}-import"]
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -83,13 +83,16 @@ def unwrap(mesh: trimesh.Trimesh, cfg: TextureConfig) -> TexturedMesh:
     return TexturedMesh(mesh.vertices[vmapping], indices.astype(np.int64), uvs.astype(np.float64))
 
 
-def texels(tm: TexturedMesh, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Covered texels of an S x S atlas: (K x 2 (row, col) indices, K x 3 surface points, K x 3 unit normals)."""
+def texel_faces(tm: TexturedMesh, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Covered texels of an S x S atlas: (K x 2 (row, col) indices, K face indices, K x 3 barycentrics)."""
     px = np.stack([tm.uvs[:, 0] * size - 0.5, (1.0 - tm.uvs[:, 1]) * size - 0.5], axis=1)
     r = rasterize_2d(px, tm.faces, size, size)
-    idx = np.argwhere(r.mask)
-    face = r.face[r.mask]
-    bary = r.bary[r.mask].astype(np.float64)
+    return np.argwhere(r.mask), r.face[r.mask], r.bary[r.mask].astype(np.float64)
+
+
+def texels(tm: TexturedMesh, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Covered texels of an S x S atlas: (K x 2 (row, col) indices, K x 3 surface points, K x 3 unit normals)."""
+    idx, face, bary = texel_faces(tm, size)
     points = np.einsum("nk,nkc->nc", bary, tm.vertices[tm.faces[face]])
     normals = trimesh.Trimesh(tm.vertices, tm.faces, process=False).face_normals[face]
     return idx, points, normals
@@ -130,6 +133,14 @@ def bake_from_function(tm: TexturedMesh, colour: Callable[[np.ndarray, np.ndarra
     """S x S x 3 uint8 albedo from `colour(points, normals)` (N x 3 each -> N x 3 floats in [0, 1])."""
     idx, points, normals = texels(tm, size)
     return _assemble(idx, 255.0 * np.clip(colour(points, normals), 0.0, 1.0), size)
+
+
+def bake_from_surface(tm: TexturedMesh, colour: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                      size: int) -> np.ndarray:
+    """S x S x 3 uint8 albedo from `colour(faces, bary)` (N face indices of `tm` and N x 3 barycentrics in them
+    -> N x 3 floats in [0, 1]): for colours given on the mesh itself (vertex colours, another UV layout)."""
+    idx, face, bary = texel_faces(tm, size)
+    return _assemble(idx, 255.0 * np.clip(colour(face, bary), 0.0, 1.0), size)
 
 
 def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
