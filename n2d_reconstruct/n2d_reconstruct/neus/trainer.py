@@ -42,6 +42,38 @@ CHECKPOINT = "neus.pt"
 
 
 @dataclass
+class AppearanceConfig:
+    """The appearance stage after the NeuS steps: geometry frozen, colour fitted on cached surface samples."""
+
+    steps: int = 0
+    """Appearance steps after the NeuS steps (0: none)."""
+    rays: int = 8192
+    """Rays per appearance step."""
+    samples: int = 4
+    """Heaviest sections per ray cached for the appearance stage."""
+    lr: float = 1e-2
+    """Peak learning rate of the appearance stage (cosine decay to optim.lr_final_factor of it)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("rays", "samples", "lr"), non_negative=("steps",))
+
+
+@dataclass
+class PretrainConfig:
+    """Fitting the SDF network to an initial shape (init_sdf, when given) before the NeuS steps."""
+
+    steps: int = 300
+    """Steps fitting the SDF to init_sdf."""
+    points: int = 8192
+    """Points per pretraining step."""
+    truncation: float = 0.1
+    """Pretraining compares SDFs clamped to +- this (normalised units)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("points", "truncation"), non_negative=("steps",))
+
+
+@dataclass
 class SamplerConfig(RenderSpec):
     """Training rays: how many per batch and where they come from, and (from RenderSpec) the samples per ray."""
 
@@ -108,38 +140,6 @@ class LossConfig:
                      non_negative=("eikonal_weight", "mask_weight", "smooth_weight", "smooth_edge_deg"))
         if not self.smooth_edge_deg <= 180:
             raise ValueError(f"smooth_edge_deg must be in [0, 180] degrees, got {self.smooth_edge_deg!r}")
-
-
-@dataclass
-class AppearanceConfig:
-    """The appearance stage after the NeuS steps: geometry frozen, colour fitted on cached surface samples."""
-
-    steps: int = 0
-    """Appearance steps after the NeuS steps (0: none)."""
-    rays: int = 8192
-    """Rays per appearance step."""
-    samples: int = 4
-    """Heaviest sections per ray cached for the appearance stage."""
-    lr: float = 1e-2
-    """Peak learning rate of the appearance stage (cosine decay to optim.lr_final_factor of it)."""
-
-    def __post_init__(self):
-        check_ranges(self, positive=("rays", "samples", "lr"), non_negative=("steps",))
-
-
-@dataclass
-class PretrainConfig:
-    """Fitting the SDF network to an initial shape (init_sdf, when given) before the NeuS steps."""
-
-    steps: int = 300
-    """Steps fitting the SDF to init_sdf."""
-    points: int = 8192
-    """Points per pretraining step."""
-    truncation: float = 0.1
-    """Pretraining compares SDFs clamped to +- this (normalised units)."""
-
-    def __post_init__(self):
-        check_ranges(self, positive=("points", "truncation"), non_negative=("steps",))
 
 
 @dataclass
