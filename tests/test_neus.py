@@ -169,7 +169,7 @@ def test_along_ray_meets_the_surface_and_keeps_a_grazing_ray_on_it():
     just outside would step off along the tangent, so it keeps its start."""
     torch.manual_seed(0)
     cfg = NeusConfig.preset("tiny")
-    net = NeusNetwork(cfg.field_spec())
+    net = NeusNetwork(cfg.field)
     field = NeusField(net, np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), cfg.render_spec(), "cpu")
     with torch.no_grad():  # the first point on the +x axis 0.08 outside the surface (within the steps' reach)
         axis = torch.linspace(0.0, 1.0, 201)[:, None] * torch.tensor([[1.0, 0.0, 0.0]])
@@ -211,7 +211,8 @@ def test_cancel_saves_and_a_rerun_resumes_from_that_step(session, tmp_path):
 
 def test_divergence_raises_a_clear_error(session, tmp_path):
     data, aabb, _ = session
-    cfg = replace(NeusConfig.preset("tiny"), lr=1e30, warmup_steps=1, steps=20)
+    cfg = NeusConfig.preset("tiny")
+    cfg = replace(cfg, optim=replace(cfg.optim, lr=1e30, warmup_steps=1), steps=20)
     with pytest.raises(N2DError, match="NeuS training diverged at step") as raised:
         train_neus(data.train, aabb, cfg, workdir=tmp_path)
     assert "learning rate" in raised.value.hint
@@ -219,7 +220,8 @@ def test_divergence_raises_a_clear_error(session, tmp_path):
 
 def test_pretraining_fits_the_initial_sdf(session, tmp_path):
     data, aabb, T_obj = session
-    cfg = replace(NeusConfig.preset("tiny"), steps=0, pretrain_steps=150)
+    cfg = NeusConfig.preset("tiny")
+    cfg = replace(cfg, steps=0, pretrain=replace(cfg.pretrain, steps=150))
     field = train_neus(data.train, aabb, cfg, workdir=tmp_path, init_sdf=lambda p: box_sdf(p, T_obj))
     points = np.random.default_rng(1).uniform(aabb[0], aabb[1], (4000, 3))
     truth = box_sdf(points, T_obj)
@@ -232,16 +234,38 @@ def test_pretraining_fits_the_initial_sdf(session, tmp_path):
 def test_unknown_preset_is_an_error():
     with pytest.raises(N2DError, match="unknown NeuS preset"):
         NeusConfig.preset("huge")
-    assert NeusConfig.preset("gpu").rays > NeusConfig.preset("cpu").rays > NeusConfig.preset("tiny").rays
+    rays = [NeusConfig.preset(name).sampler.rays for name in ("gpu", "cpu", "tiny")]
+    assert rays == sorted(rays, reverse=True) and len(set(rays)) == 3
+
+
+def test_presets_fill_their_sections_and_keep_the_defaults_elsewhere():
+    """A preset names only what it changes, section by section; the rest are the sections' defaults."""
+    tiny, cpu, gpu = (NeusConfig.preset(name) for name in ("tiny", "cpu", "gpu"))
+    assert (tiny.steps, tiny.field.levels, tiny.field.log2_table, tiny.sampler.rays, tiny.optim.warmup_steps,
+            tiny.pretrain.points, tiny.checkpoint_every) == (300, 8, 14, 256, 20, 2048, 100)
+    assert (tiny.field.colour_max_res, tiny.optim.lr, tiny.appearance.steps, tiny.loss.smooth_weight) == (
+        2048, 1e-2, 0, 0.0)
+    assert (cpu.steps, cpu.field.log2_table, cpu.appearance.steps, cpu.loss.smooth_edge_deg, cpu.pretrain.steps) == (
+        6000, 18, 1500, 30.0, 300)
+    assert (gpu.steps, gpu.field.max_res, gpu.sampler.coarse_every, gpu.sampler.coarse_samples,
+            gpu.optim.cos_anneal_steps, gpu.pretrain.points) == (20000, 2048, 1, 64, 5000, 65536)
+    assert cpu.render_spec().coarse_samples == 32 and not hasattr(cpu.render_spec(), "rays")
 
 
 @pytest.mark.parametrize("override, message", [
-    ("smooth_weight=-0.01", "smooth_weight must be a finite number >= 0"),
-    ("lr=nan", "lr must be a finite number > 0"),
-    ("rays=0", "rays must be a finite number > 0"),
-    ("max_res=8", "max_res must be >= base_res"),
-    ("background_fraction=1", "background_fraction must be in"),
-    ("smooth_edge_deg=200", "smooth_edge_deg must be in"),
+    ("loss.smooth_weight=-0.01", "loss: smooth_weight must be a finite number >= 0"),
+    ("optim.lr=nan", "optim: lr must be a finite number > 0"),
+    ("sampler.rays=0", "sampler: rays must be a finite number > 0"),
+    ("sampler.coarse_every=0", "coarse_every must be a finite number > 0"),
+    ("appearance.samples=0", "samples must be a finite number > 0"),
+    ("pretrain.steps=-1", "steps must be a finite number >= 0"),
+    ("checkpoint_every=0", "checkpoint_every must be a finite number > 0"),
+    ("field.max_res=8", "max_res must be >= base_res"),
+    ("field.init_radius=1", "init_radius must be < 1"),
+    ("sampler.background_fraction=1", "background_fraction must be in"),
+    ("optim.lr_final_factor=2", "lr_final_factor must be in"),
+    ("loss.smooth_edge_deg=200", "smooth_edge_deg must be in"),
+    ("lr=0.1", "unknown key"),
     ("device=tpu", "device 'tpu'"),
 ])
 def test_bad_neus_config_is_refused_at_the_boundary(override, message):
@@ -253,7 +277,7 @@ def test_smoothness_measures_the_surface_curvature_and_trains_the_sdf_network():
     """On the initial sphere (radius R) the normals e ~ N(0, r) apart differ by |tangential e| / R: mean
     r sqrt(pi / 2) / R. Its gradient reaches the SDF network's weights on the encoding (zero at the start, so
     the table itself gets none yet). Rays that reach no surface give no loss."""
-    net = NeusNetwork(NeusConfig.preset("tiny").field_spec())
+    net = NeusNetwork(NeusConfig.preset("tiny").field)
     R, r, n = net.spec.init_radius, 0.02, 4096
     gen = torch.Generator().manual_seed(0)
     o = functional.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 0.9
@@ -271,7 +295,7 @@ def test_smoothness_measures_the_surface_curvature_and_trains_the_sdf_network():
 def test_smoothness_leaves_edges_alone():
     """Pairs of normals further apart than smooth_edge_deg add a constant: on the initial sphere, pairs drawn 0.3
     apart (mostly beyond 1 degree) give the capped loss and almost no gradient; a 180 degree cap changes nothing."""
-    net = NeusNetwork(NeusConfig.preset("tiny").field_spec())
+    net = NeusNetwork(NeusConfig.preset("tiny").field)
     R, r, n = net.spec.init_radius, 0.3, 4096
     gen = torch.Generator().manual_seed(1)
     o = functional.normalize(torch.randn(n, 3, generator=gen), dim=-1) * 0.9
@@ -296,8 +320,8 @@ def test_training_applies_the_smoothness_loss(session, tmp_path):
     loss's gradient tells them apart)."""
     data, aabb, _ = session
     cfg = replace(NeusConfig.preset("tiny"), steps=10)
-    plain, smooth = (train_neus(data.train, aabb, replace(cfg, smooth_weight=w), workdir=tmp_path / str(w))
-                     for w in (0.0, 1.0))
+    plain, smooth = (train_neus(data.train, aabb, replace(cfg, loss=replace(cfg.loss, smooth_weight=w)),
+                                workdir=tmp_path / str(w)) for w in (0.0, 1.0))
     points = np.random.default_rng(2).uniform(aabb[0], aabb[1], (2000, 3))
     a, b = plain.sdf(points), smooth.sdf(points)
     assert np.isfinite(b).all() and np.abs(a - b).max() > 1e-4

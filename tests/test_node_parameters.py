@@ -103,8 +103,8 @@ def test_nodes_list_their_user_tier(ros):
 @pytest.fixture
 def expert_file(tmp_path):
     path = tmp_path / "reconstruct.yaml"
-    path.write_text(yaml.safe_dump({"reconstruct": {"neus": {"steps": 7, "lr": 0.002}, "mesh": {"voxel_m": 0.004},
-                                                    "texture.size_px": 512}}))
+    path.write_text(yaml.safe_dump({"reconstruct": {"neus": {"steps": 7, "optim": {"lr": 0.002}},
+                                                    "mesh": {"voxel_m": 0.004}, "texture.size_px": 512}}))
     return path
 
 
@@ -113,7 +113,7 @@ def test_config_file_sets_expert_values_and_parameters_win(tmp_path, expert_file
     try:
         node = importlib.import_module("n2d_reconstruct.nodes.reconstruct_node").ReconstructNode()
         cfg = node.cfg.reconstruct
-        assert (cfg.neus.steps, cfg.neus.lr, cfg.texture.size_px) == (7, 0.002, 512)  # from the file
+        assert (cfg.neus.steps, cfg.neus.optim.lr, cfg.texture.size_px) == (7, 0.002, 512)  # from the file
         assert cfg.mesh.voxel_m == 0.003  # the parameter overrides the file
         assert node.get_parameter("reconstruct.neus.steps").value == 7  # a user parameter shows the file's value
         node.destroy_node()
@@ -132,6 +132,7 @@ def test_ros_parameters_file_is_a_config_file(tmp_path):
 @pytest.mark.parametrize("text, words", [
     ("reconstruct: {neus: {stepz: 3}}", ["unknown key", "stepz"]),
     ("reconstruct: {neus: {steps: many}}", ["neus.steps", "many"]),
+    ("reconstruct: {neus: {lr: 0.1}}", ["unknown key", "lr", "optim"]),  # a key of the flat layout
     ("reconstruct: [1, 2", ["not valid YAML"]),
 ])
 def test_bad_config_file_says_what_and_where(tmp_path, text, words):
@@ -145,10 +146,10 @@ def test_bad_config_file_says_what_and_where(tmp_path, text, words):
 
 
 def test_expert_setting_as_parameter_is_refused(ros_domain):
-    rclpy.init(args=["--ros-args", "-p", "reconstruct.neus.lr:=0.1"])
+    rclpy.init(args=["--ros-args", "-p", "reconstruct.neus.optim.lr:=0.1"])
     try:
         with pytest.raises(ConfigError) as info:
             importlib.import_module("n2d_reconstruct.nodes.reconstruct_node").ReconstructNode()
-        assert "reconstruct.neus.lr" in info.value.message and "config_file" in info.value.hint
+        assert "reconstruct.neus.optim.lr" in info.value.message and "config_file" in info.value.hint
     finally:
         rclpy.shutdown()

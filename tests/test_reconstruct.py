@@ -235,7 +235,8 @@ def test_cli_reconstruct(session, tmp_path, capsys):
 
 def _neus_config() -> ReconstructConfig:
     cfg = _config(method="neus")
-    cfg.neus = replace(NeusConfig.preset("tiny"), steps=60, pretrain_steps=40, checkpoint_every=20,
+    tiny = NeusConfig.preset("tiny")
+    cfg.neus = replace(tiny, steps=60, pretrain=replace(tiny.pretrain, steps=40), checkpoint_every=20,
                        progress_every=5)
     return cfg
 

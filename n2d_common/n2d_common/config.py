@@ -12,6 +12,7 @@ import ast
 import dataclasses
 import inspect
 import json
+import math
 import textwrap
 import types
 import typing
@@ -234,3 +235,13 @@ def flat_fields(cls: type, prefix: str = "") -> list[tuple[str, Any, Any, str]]:
         else:
             out.append((f"{prefix}{f.name}", tp, getattr(defaults, f.name), docs.get(f.name, "")))
     return out
+
+
+def check_ranges(cfg: Any, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = ()) -> None:
+    """Raise ValueError naming the first field of `cfg` that is not a finite number > 0 (`positive`) or >= 0
+    (`non_negative`); for a config's `__post_init__`."""
+    for names, low, ok in ((positive, "> 0", lambda v: v > 0), (non_negative, ">= 0", lambda v: v >= 0)):
+        for name in names:
+            value = getattr(cfg, name)
+            if not (ok(value) and math.isfinite(value)):
+                raise ValueError(f"{name} must be a finite number {low}, got {value!r}")

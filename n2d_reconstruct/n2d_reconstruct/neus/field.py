@@ -18,6 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional
 
+from n2d_common.config import check_ranges
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_reconstruct.neus.encoding import HashGrid
 from n2d_reconstruct.neus.renderer import Normaliser, RenderSpec, box_intersect, camera_rays, pixel_grid, render_rays
@@ -31,22 +32,52 @@ class FieldSpec:
     """The network shape: every number that must match between a checkpoint and the code loading it."""
 
     levels: int = 16
+    """Hash grid levels."""
     features: int = 2
+    """Features per grid vertex."""
     log2_table: int = 19
+    """log2 of the hash table rows per level."""
     base_res: int = 16
+    """Coarsest grid: cells per axis over the normalised cube (the box's longest side)."""
     max_res: int = 1024
+    """Finest grid: cells per axis over the normalised cube."""
     sdf_hidden: int = 64
+    """Width of the SDF MLP."""
     sdf_layers: int = 1
+    """Hidden layers of the SDF MLP."""
     geo_features: int = 15
+    """Geometry features the SDF MLP passes to the colour MLP."""
     colour_hidden: int = 64
+    """Width of the colour MLP."""
     colour_layers: int = 2
+    """Hidden layers of the colour MLP."""
     colour_levels: int = 0
+    """Levels of a separate appearance hash grid (0: the colour MLP reads the geometry grid)."""
     colour_features: int = 2
+    """Features per vertex of the appearance grid."""
     colour_log2_table: int = 19
+    """log2 of the appearance grid's table rows per level."""
     colour_base_res: int = 16
+    """Coarsest appearance grid (cells per axis over the normalised cube)."""
     colour_max_res: int = 2048
+    """Finest appearance grid (cells per axis over the normalised cube)."""
     init_radius: float = 0.5
+    """Radius of the initial SDF sphere (normalised: the box's largest half-extent is 1)."""
     init_variance: float = 0.3
+    """Initial NeuS variance parameter: inverse sharpness s = exp(10 * variance)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("levels", "features", "base_res", "sdf_hidden", "colour_hidden",
+                                     "colour_features", "colour_base_res", "init_radius"),
+                     non_negative=("sdf_layers", "geo_features", "colour_layers", "colour_levels"))
+        if not (1 <= self.log2_table <= 30 and 1 <= self.colour_log2_table <= 30):
+            raise ValueError("log2_table and colour_log2_table must be in [1, 30] (2^k hash table rows per level)")
+        if self.max_res < self.base_res or self.colour_max_res < self.colour_base_res:
+            raise ValueError("max_res must be >= base_res and colour_max_res >= colour_base_res")
+        if not self.init_radius < 1:
+            raise ValueError(f"init_radius must be < 1 (the box's largest half-extent), got {self.init_radius!r}")
+        if not math.isfinite(self.init_variance):
+            raise ValueError(f"init_variance must be a number, got {self.init_variance!r}")
 
 
 @dataclass

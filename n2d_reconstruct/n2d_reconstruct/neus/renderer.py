@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from n2d_common.config import check_ranges
+
 if TYPE_CHECKING:
     from n2d_reconstruct.neus.field import NeusNetwork
 
@@ -37,6 +39,10 @@ class RenderSpec:
     """Every k-th coarse sample also goes into the differentiable pass (free-space supervision)."""
     base_inv_s: float = 64.0
     """Sharpness (1 / normalised units) of the first up-sampling round."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("coarse_samples", "coarse_every", "base_inv_s"),
+                     non_negative=("importance_samples", "up_sample_steps"))
 
 
 @dataclass

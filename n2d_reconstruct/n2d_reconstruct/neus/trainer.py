@@ -10,17 +10,19 @@ object's box. With `init_sdf` the SDF network is first fitted to that shape (tru
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch.nn import functional
 
+from n2d_common.config import check_ranges, from_dict
 from n2d_common.errors import Cancelled, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
@@ -40,59 +42,59 @@ CHECKPOINT = "neus.pt"
 
 
 @dataclass
-class NeusConfig:
-    """Every tunable of NeuS training. Distances are in the network frame unless named _m (metres)."""
+class AppearanceConfig:
+    """The appearance stage after the NeuS steps: geometry frozen, colour fitted on cached surface samples."""
 
-    levels: int = 16
-    """Hash grid levels."""
-    features: int = 2
-    """Features per grid vertex."""
-    log2_table: int = 19
-    """log2 of the hash table rows per level."""
-    base_res: int = 16
-    """Coarsest grid: cells per axis over the normalised cube (the box's longest side)."""
-    max_res: int = 1024
-    """Finest grid: cells per axis over the normalised cube."""
-    sdf_hidden: int = 64
-    """Width of the SDF MLP."""
-    sdf_layers: int = 1
-    """Hidden layers of the SDF MLP."""
-    geo_features: int = 15
-    """Geometry features the SDF MLP passes to the colour MLP."""
-    colour_hidden: int = 64
-    """Width of the colour MLP."""
-    colour_layers: int = 2
-    """Hidden layers of the colour MLP."""
-    colour_levels: int = 0
-    """Levels of a separate appearance hash grid (0: the colour MLP reads the geometry grid)."""
-    colour_features: int = 2
-    """Features per vertex of the appearance grid."""
-    colour_log2_table: int = 19
-    """log2 of the appearance grid's table rows per level."""
-    colour_base_res: int = 16
-    """Coarsest appearance grid (cells per axis over the normalised cube)."""
-    colour_max_res: int = 2048
-    """Finest appearance grid (cells per axis over the normalised cube)."""
-    init_radius: float = 0.5
-    """Radius of the initial SDF sphere (normalised: the box's largest half-extent is 1)."""
-    init_variance: float = 0.3
-    """Initial NeuS variance parameter: inverse sharpness s = exp(10 * variance)."""
+    steps: int = 0
+    """Appearance steps after the NeuS steps (0: none)."""
+    rays: int = 8192
+    """Rays per appearance step."""
+    samples: int = 4
+    """Heaviest sections per ray cached for the appearance stage."""
+    lr: float = 1e-2
+    """Peak learning rate of the appearance stage (cosine decay to optim.lr_final_factor of it)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("rays", "samples", "lr"), non_negative=("steps",))
+
+
+@dataclass
+class PretrainConfig:
+    """Fitting the SDF network to an initial shape (init_sdf, when given) before the NeuS steps."""
+
+    steps: int = 300
+    """Steps fitting the SDF to init_sdf."""
+    points: int = 8192
+    """Points per pretraining step."""
+    truncation: float = 0.1
+    """Pretraining compares SDFs clamped to +- this (normalised units)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("points", "truncation"), non_negative=("steps",))
+
+
+@dataclass
+class SamplerConfig(RenderSpec):
+    """Training rays: how many per batch and where they come from, and (from RenderSpec) the samples per ray."""
+
     rays: int = 1024
     """Rays per training batch."""
     background_fraction: float = 0.2
     """Share of each batch's rays drawn from background pixels (mask loss only)."""
     bbox_margin: float = 0.25
     """Background rays come from each view's mask bounding box grown by this fraction of its size."""
-    coarse_samples: int = 32
-    """Stratified samples per ray evaluated without gradients."""
-    importance_samples: int = 32
-    """Importance samples per ray near the surface (differentiable)."""
-    up_sample_steps: int = 4
-    """Rounds of hierarchical up-sampling."""
-    coarse_every: int = 4
-    """Every k-th coarse sample joins the differentiable pass."""
-    steps: int = 5000
-    """Training steps (batches)."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_ranges(self, positive=("rays",), non_negative=("bbox_margin",))
+        if not 0 <= self.background_fraction < 1:
+            raise ValueError(f"background_fraction must be in [0, 1), got {self.background_fraction!r}")
+
+
+@dataclass
+class OptimiserConfig:
+    """Adam's learning rates and their schedule, NeuS's cosine annealing and the coarse-to-fine hash levels."""
+
     lr: float = 1e-2
     """Peak learning rate (Adam) of the hash grid and MLPs."""
     lr_variance: float = 1e-3
@@ -103,6 +105,22 @@ class NeusConfig:
     """Linear learning-rate warm-up steps."""
     cos_anneal_steps: int = 1000
     """Steps over which NeuS's cosine annealing ratio goes from 0 to 1."""
+    level_start: int = 0
+    """Coarse-to-fine: active hash levels at step 0 (0 = all levels from the start)."""
+    level_every_steps: int = 0
+    """Coarse-to-fine: steps until the next level is fully active."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("lr",), non_negative=("lr_variance", "warmup_steps", "cos_anneal_steps",
+                                                           "level_start", "level_every_steps"))
+        if not 0 <= self.lr_final_factor <= 1:
+            raise ValueError(f"lr_final_factor must be in [0, 1], got {self.lr_final_factor!r}")
+
+
+@dataclass
+class LossConfig:
+    """Weights of the losses besides the colour loss."""
+
     eikonal_weight: float = 0.1
     """Weight of the eikonal loss (|grad sdf| - 1)^2."""
     mask_weight: float = 0.1
@@ -116,51 +134,44 @@ class NeusConfig:
     smooth_edge_deg: float = 0.0
     """Pairs of normals further apart than this angle count as an edge and add a constant (no gradient), so the
     loss flattens small bumps without rounding the object's edges (0: every pair counts in full)."""
-    level_start: int = 0
-    """Coarse-to-fine: active hash levels at step 0 (0 = all levels from the start)."""
-    level_every_steps: int = 0
-    """Coarse-to-fine: steps until the next level is fully active."""
-    texture_steps: int = 0
-    """Appearance steps after the NeuS steps: geometry frozen, colour fitted on cached surface samples."""
-    texture_rays: int = 8192
-    """Rays per appearance step."""
-    texture_samples: int = 4
-    """Heaviest sections per ray cached for the appearance stage."""
-    texture_lr: float = 1e-2
-    """Peak learning rate of the appearance stage (cosine decay to lr_final_factor of it)."""
-    pretrain_steps: int = 300
-    """Steps fitting the SDF to init_sdf (when given)."""
-    pretrain_points: int = 8192
-    """Points per pretraining step."""
-    pretrain_truncation: float = 0.1
-    """Pretraining compares SDFs clamped to +- this (normalised units)."""
+
+    def __post_init__(self):
+        check_ranges(self, positive=("smooth_radius_m",),
+                     non_negative=("eikonal_weight", "mask_weight", "smooth_weight", "smooth_edge_deg"))
+        if not self.smooth_edge_deg <= 180:
+            raise ValueError(f"smooth_edge_deg must be in [0, 180] degrees, got {self.smooth_edge_deg!r}")
+
+
+@dataclass
+class NeusConfig:
+    """Every tunable of NeuS training: the user's settings here, the advanced ones in a section each.
+    Distances are in the network frame unless named _m (metres)."""
+
+    steps: int = 5000
+    """Training steps (batches)."""
     device: str = "auto"
     """"auto" (CUDA when available), "cpu" or "cuda"."""
     seed: int = 0
     """Seed of weights, ray batches and samples."""
+    field: FieldSpec = dataclasses.field(default_factory=FieldSpec)
+    """The networks: hash grid, SDF and colour MLPs, initial sphere and variance."""
+    sampler: SamplerConfig = dataclasses.field(default_factory=SamplerConfig)
+    """Rays per batch and samples per ray."""
+    optim: OptimiserConfig = dataclasses.field(default_factory=OptimiserConfig)
+    """Learning rates and schedules."""
+    loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+    """Loss weights."""
+    appearance: AppearanceConfig = dataclasses.field(default_factory=AppearanceConfig)
+    """The appearance stage after the NeuS steps."""
+    pretrain: PretrainConfig = dataclasses.field(default_factory=PretrainConfig)
+    """Pretraining the SDF to the initial shape."""
     checkpoint_every: int = 500
     """Steps between checkpoints (also written on cancel and at the end)."""
     progress_every: int = 10
     """Steps between progress reports."""
 
     def __post_init__(self):
-        for names, low, ok in ((_POSITIVE, "> 0", lambda v: v > 0), (_NON_NEGATIVE, ">= 0", lambda v: v >= 0)):
-            for name in names:
-                value = getattr(self, name)
-                if not (ok(value) and math.isfinite(value)):
-                    raise ValueError(f"{name} must be a finite number {low}, got {value!r}")
-        if not (1 <= self.log2_table <= 30 and 1 <= self.colour_log2_table <= 30):
-            raise ValueError("log2_table and colour_log2_table must be in [1, 30] (2^k hash table rows per level)")
-        if self.max_res < self.base_res or self.colour_max_res < self.colour_base_res:
-            raise ValueError("max_res must be >= base_res and colour_max_res >= colour_base_res")
-        if not self.init_radius < 1:
-            raise ValueError(f"init_radius must be < 1 (the box's largest half-extent), got {self.init_radius!r}")
-        if not (0 <= self.background_fraction < 1 and 0 <= self.lr_final_factor <= 1):
-            raise ValueError("background_fraction must be in [0, 1) and lr_final_factor in [0, 1]")
-        if not self.smooth_edge_deg <= 180:
-            raise ValueError(f"smooth_edge_deg must be in [0, 180] degrees, got {self.smooth_edge_deg!r}")
-        if not math.isfinite(self.init_variance):
-            raise ValueError(f"init_variance must be a number, got {self.init_variance!r}")
+        check_ranges(self, positive=("checkpoint_every", "progress_every"), non_negative=("steps",))
         try:
             resolve_device(self.device)
         except RuntimeError as exc:
@@ -171,39 +182,35 @@ class NeusConfig:
         """"tiny" (tests, seconds on CPU), "cpu" (2 cores, tens of minutes) or "gpu" (the paper's scale)."""
         if name not in PRESETS:
             raise N2DError(f"unknown NeuS preset {name!r}", f"use one of {', '.join(PRESETS)}")
-        return cls(**PRESETS[name])
-
-    def field_spec(self) -> FieldSpec:
-        return FieldSpec(**{f.name: getattr(self, f.name) for f in fields(FieldSpec)})
+        return from_dict(cls, PRESETS[name], f"NeuS preset {name}")
 
     def render_spec(self) -> RenderSpec:
-        return RenderSpec(**{f.name: getattr(self, f.name) for f in fields(RenderSpec) if hasattr(self, f.name)})
+        """The samples per ray (the renderer's part of the sampler section)."""
+        return RenderSpec(**{f.name: getattr(self.sampler, f.name) for f in dataclasses.fields(RenderSpec)})
 
 
 PRESETS: dict[str, dict] = {
-    "tiny": dict(levels=8, log2_table=14, base_res=8, max_res=128, sdf_hidden=32, geo_features=7,
-                 colour_hidden=32, colour_layers=1, rays=256, coarse_samples=16, importance_samples=16,
-                 up_sample_steps=2, coarse_every=4, steps=300, warmup_steps=20, cos_anneal_steps=100,
-                 lr_variance=3e-3, pretrain_steps=100, pretrain_points=2048, checkpoint_every=100),
-    "cpu": dict(levels=16, log2_table=18, max_res=1024, rays=1024, coarse_samples=32, importance_samples=32,
-                up_sample_steps=4, coarse_every=4, steps=6000, warmup_steps=200, cos_anneal_steps=1000,
-                pretrain_steps=300, checkpoint_every=500, texture_steps=1500, smooth_weight=0.01, smooth_edge_deg=30.0),
-    "gpu": dict(levels=16, log2_table=19, max_res=2048, rays=4096, coarse_samples=64, importance_samples=64,
-                up_sample_steps=4, coarse_every=1, steps=20000, warmup_steps=500, cos_anneal_steps=5000,
-                pretrain_steps=1000, pretrain_points=65536, checkpoint_every=2000, smooth_weight=0.01,
-                smooth_edge_deg=30.0),
+    "tiny": {"field": dict(levels=8, log2_table=14, base_res=8, max_res=128, sdf_hidden=32, geo_features=7,
+                           colour_hidden=32, colour_layers=1),
+             "sampler": dict(rays=256, coarse_samples=16, importance_samples=16, up_sample_steps=2, coarse_every=4),
+             "optim": dict(warmup_steps=20, cos_anneal_steps=100, lr_variance=3e-3),
+             "pretrain": dict(steps=100, points=2048),
+             "steps": 300, "checkpoint_every": 100},
+    "cpu": {"field": dict(levels=16, log2_table=18, max_res=1024),
+            "sampler": dict(rays=1024, coarse_samples=32, importance_samples=32, up_sample_steps=4, coarse_every=4),
+            "optim": dict(warmup_steps=200, cos_anneal_steps=1000),
+            "loss": dict(smooth_weight=0.01, smooth_edge_deg=30.0),
+            "appearance": dict(steps=1500),
+            "pretrain": dict(steps=300),
+            "steps": 6000, "checkpoint_every": 500},
+    "gpu": {"field": dict(levels=16, log2_table=19, max_res=2048),
+            "sampler": dict(rays=4096, coarse_samples=64, importance_samples=64, up_sample_steps=4, coarse_every=1),
+            "optim": dict(warmup_steps=500, cos_anneal_steps=5000),
+            "loss": dict(smooth_weight=0.01, smooth_edge_deg=30.0),
+            "pretrain": dict(steps=1000, points=65536),
+            "steps": 20000, "checkpoint_every": 2000},
 }
-"""Overrides of the defaults per preset."""
-
-_POSITIVE = ("levels", "features", "base_res", "sdf_hidden", "colour_hidden", "colour_features", "colour_base_res",
-             "init_radius", "rays", "coarse_samples", "coarse_every", "lr", "smooth_radius_m", "texture_rays",
-             "texture_samples", "texture_lr", "pretrain_points", "pretrain_truncation", "checkpoint_every",
-             "progress_every")
-_NON_NEGATIVE = ("sdf_layers", "geo_features", "colour_layers", "colour_levels", "bbox_margin", "importance_samples",
-                 "up_sample_steps", "steps", "lr_variance", "warmup_steps", "cos_anneal_steps", "eikonal_weight",
-                 "mask_weight", "smooth_weight", "smooth_edge_deg", "level_start", "level_every_steps",
-                 "texture_steps", "pretrain_steps")
-"""NeusConfig's range checks."""
+"""Overrides of the defaults per preset, section by section."""
 
 _NOT_IDENTITY = ("device", "checkpoint_every", "progress_every")
 """Config fields that do not change the result: a checkpoint written with other values still resumes."""
@@ -212,7 +219,7 @@ _NOT_IDENTITY = ("device", "checkpoint_every", "progress_every")
 class RaySampler:
     """Random training rays: pixel colours, mask labels, origins and directions (normalised frame)."""
 
-    def __init__(self, views: Views, norm: Normaliser, cfg: NeusConfig, device: torch.device):
+    def __init__(self, views: Views, norm: Normaliser, cfg: SamplerConfig, device: torch.device):
         self.norm, self.cfg, self.device = norm, cfg, device
         self.K = np.asarray(views.K, dtype=np.float64)
         self.h, self.w = views.height, views.width
@@ -271,16 +278,21 @@ def _identity(cfg: NeusConfig, train: Views, aabb: np.ndarray) -> dict:
 
 
 def _lr_factor(cfg: NeusConfig, step: int) -> float:
-    if step < cfg.warmup_steps:
-        return (step + 1) / cfg.warmup_steps
-    progress = (step - cfg.warmup_steps) / max(cfg.steps - cfg.warmup_steps, 1)
-    return cfg.lr_final_factor + (1 - cfg.lr_final_factor) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+    if step < cfg.optim.warmup_steps:
+        return (step + 1) / cfg.optim.warmup_steps
+    warmup = cfg.optim.warmup_steps
+    return _cosine(cfg.optim.lr_final_factor, (step - warmup) / max(cfg.steps - warmup, 1))
+
+
+def _cosine(final: float, progress: float) -> float:
+    """Cosine decay from 1 at progress 0 to `final` at progress 1 (and after)."""
+    return final + (1 - final) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
 
 
 def _optimizer(net: NeusNetwork, cfg: NeusConfig) -> torch.optim.Adam:
     others = [p for name, p in net.named_parameters() if name != "variance"]
-    groups = [{"params": others, "lr": cfg.lr, "base_lr": cfg.lr},
-              {"params": [net.variance], "lr": cfg.lr_variance, "base_lr": cfg.lr_variance}]
+    groups = [{"params": others, "lr": cfg.optim.lr, "base_lr": cfg.optim.lr},
+              {"params": [net.variance], "lr": cfg.optim.lr_variance, "base_lr": cfg.optim.lr_variance}]
     fused = {"fused": True} if _fused_ok(net) else {}
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, **fused)
 
@@ -299,22 +311,22 @@ def pretrain_sdf(net: NeusNetwork, init_sdf: Callable[[np.ndarray], np.ndarray],
     """Fit the SDF network to `init_sdf` (metres) inside the box; returns the last loss."""
     device = net.variance.device
     lo, hi = norm.lo, norm.hi
-    uniform = rng.uniform(lo, hi, size=(max(8 * cfg.pretrain_points, 32768), 3))
+    uniform = rng.uniform(lo, hi, size=(max(8 * cfg.pretrain.points, 32768), 3))
     target = np.asarray(init_sdf(uniform * norm.scale_m + norm.centre), dtype=np.float64) / norm.scale_m
     near = uniform[np.argsort(np.abs(target))[: len(uniform) // 2]]
     near = np.clip(near + rng.normal(0, 0.02, near.shape), lo, hi)
     near_target = np.asarray(init_sdf(near * norm.scale_m + norm.centre), dtype=np.float64) / norm.scale_m
     pts = torch.as_tensor(np.concatenate([uniform, near]), dtype=torch.float32, device=device)
     tgt = torch.as_tensor(np.concatenate([target, near_target]), dtype=torch.float32, device=device)
-    trunc = cfg.pretrain_truncation
+    trunc = cfg.pretrain.truncation
     params = [net.grid.table, *net.sdf_layers.parameters()]
-    opt = torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    opt = torch.optim.Adam(params, lr=cfg.optim.lr, betas=(0.9, 0.99), eps=1e-15)
     loss = torch.zeros(())
-    for _ in range(cfg.pretrain_steps):
-        pick = torch.randint(len(pts), (cfg.pretrain_points,), device=device)
+    for _ in range(cfg.pretrain.steps):
+        pick = torch.randint(len(pts), (cfg.pretrain.points,), device=device)
         geo = net.geometry(pts[pick], gradient=True)
         fit = (geo.sdf.clamp(-trunc, trunc) - tgt[pick].clamp(-trunc, trunc)).abs().mean()
-        loss = fit + cfg.eikonal_weight * ((geo.grad.norm(dim=-1) - 1.0) ** 2).mean()
+        loss = fit + cfg.loss.eikonal_weight * ((geo.grad.norm(dim=-1) - 1.0) ** 2).mean()
         opt.zero_grad(set_to_none=False)
         loss.backward()
         opt.step()
@@ -353,13 +365,12 @@ class TextureRays:
 def _texture_optimizer(net: NeusNetwork, cfg: NeusConfig) -> torch.optim.Adam:
     params = [*net.colour_layers.parameters()] + ([net.colour_grid.table] if net.colour_grid is not None else [])
     fused = {"fused": True} if _fused_ok(net) else {}
-    return torch.optim.Adam([{"params": params, "lr": cfg.texture_lr, "base_lr": cfg.texture_lr}],
+    return torch.optim.Adam([{"params": params, "lr": cfg.appearance.lr, "base_lr": cfg.appearance.lr}],
                             betas=(0.9, 0.99), eps=1e-15, **fused)
 
 
 def _texture_lr_factor(cfg: NeusConfig, step: int) -> float:
-    progress = step / max(cfg.texture_steps, 1)
-    return cfg.lr_final_factor + (1 - cfg.lr_final_factor) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+    return _cosine(cfg.optim.lr_final_factor, step / max(cfg.appearance.steps, 1))
 
 
 def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path,
@@ -368,7 +379,7 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
     """Train a NeuS field on `train` views inside `aabb` (2 x 3 [min, max], turntable frame, metres).
 
     init_sdf: optional signed distance (metres, negative inside) of a coarse shape to pretrain the SDF to.
-    Steps count on through the appearance stage (cfg.steps + cfg.texture_steps in all). Checkpoints go to
+    Steps count on through the appearance stage (cfg.steps + cfg.appearance.steps in all). Checkpoints go to
     workdir/neus.pt every cfg.checkpoint_every steps, on cancel and at the end; a call finding a checkpoint
     of the same config, box and views resumes from it (a finished one just loads).
     Raises Cancelled when `cancel` is set (after saving) and N2DError when the loss stops being finite.
@@ -378,10 +389,10 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     norm = Normaliser.from_aabb(aabb)
-    net = NeusNetwork(cfg.field_spec()).to(device)
+    net = NeusNetwork(cfg.field).to(device)
     field = NeusField(net, aabb, cfg.render_spec(), str(device))
     identity = _identity(cfg, train, aabb)
-    total = cfg.steps + cfg.texture_steps
+    total = cfg.steps + cfg.appearance.steps
     start = 0
     state = load_checkpoint(path, device) if path.is_file() else None
     resumed = state is not None and state.get("identity") == identity
@@ -399,7 +410,7 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
         atomic_torch_save({**field.state(), "identity": identity, "step": step, "optimizer": opt.state_dict(),
                            "stage": "neus" if step < cfg.steps else "texture"}, path)
 
-    sampler = RaySampler(train, norm, cfg, device)
+    sampler = RaySampler(train, norm, cfg.sampler, device)
     spec = cfg.render_spec()
     texture = None
     eta = Eta()
@@ -420,14 +431,14 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
             if texture is None:
                 progress(Progress(step / total, "neus", message="caching surface samples for the appearance stage",
                                   info=dict(info)))
-                texture = TextureRays(net, sampler, spec, cfg.texture_samples)
+                texture = TextureRays(net, sampler, spec, cfg.appearance.samples)
             for group in opt.param_groups:
                 group["lr"] = group["base_lr"] * _texture_lr_factor(cfg, step - cfg.steps)
-            loss = colour = texture.loss(net, cfg.texture_rays)
+            loss = colour = texture.loss(net, cfg.appearance.rays)
         value = float(loss.detach())
         if not math.isfinite(value):
             raise N2DError(f"NeuS training diverged at step {step} (loss {value})",
-                           f"lower the learning rate (lr={cfg.lr:g}) or raise warmup_steps; re-run")
+                           f"lower the learning rate (lr={cfg.optim.lr:g}) or raise optim.warmup_steps; re-run")
         opt.zero_grad(set_to_none=False)
         loss.backward()
         opt.step()
@@ -449,18 +460,21 @@ def _neus_step(net: NeusNetwork, opt, sampler: RaySampler, spec: RenderSpec, cfg
     """Loss (and colour loss) of one NeuS batch; sets the learning rates and coarse-to-fine levels."""
     for group in opt.param_groups:
         group["lr"] = group["base_lr"] * _lr_factor(cfg, step)
-    if cfg.level_every_steps > 0:
-        net.set_level_mask(cfg.level_start + step / cfg.level_every_steps)
-    o, d, near, far, target, label = sampler.sample(cfg.rays)
-    out = render_rays(net, o, d, near, far, spec, jitter=True, cos_anneal=min(1.0, step / max(cfg.cos_anneal_steps, 1)))
+    if cfg.optim.level_every_steps > 0:
+        net.set_level_mask(cfg.optim.level_start + step / cfg.optim.level_every_steps)
+    o, d, near, far, target, label = sampler.sample(cfg.sampler.rays)
+    anneal = min(1.0, step / max(cfg.optim.cos_anneal_steps, 1))
+    out = render_rays(net, o, d, near, far, spec, jitter=True, cos_anneal=anneal)
     colour = functional.mse_loss(out.rgb[label], target[label])
     acc = out.acc.clamp(1e-3, 1 - 1e-3)  # binary cross-entropy, written out so NaN reaches the caller's check
     mask = -torch.where(label, acc.log(), (1 - acc).log()).mean()
     eikonal = ((out.grad.norm(dim=-1) - 1.0) ** 2).mean()
-    loss = colour + cfg.mask_weight * mask + cfg.eikonal_weight * eikonal
-    if cfg.smooth_weight > 0:
-        loss = loss + cfg.smooth_weight * _smoothness(net, o, d, out, label, cfg.smooth_radius_m / sampler.norm.scale_m,
-                                                      cfg.smooth_edge_deg)
+    weights = cfg.loss
+    loss = colour + weights.mask_weight * mask + weights.eikonal_weight * eikonal
+    if weights.smooth_weight > 0:
+        loss = loss + weights.smooth_weight * _smoothness(net, o, d, out, label,
+                                                          weights.smooth_radius_m / sampler.norm.scale_m,
+                                                          weights.smooth_edge_deg)
     return loss, colour
 
 
