@@ -517,7 +517,7 @@ def import_posed(source_dir: str | Path, session_dir: str | Path, cfg: PosedImpo
             frames.append((image_file, mask_file, T))
             pose = board_poses[i]
             records.append({"index": i, "file": image_file, "mask": mask_file, "source": views.names[i],
-                            "angle_rad": None, "pose_source": source,
+                            "angle_rad": None, "pose_source": "imported",
                             "board_rms_px": pose.rms_px if pose else None,
                             "board_corners": pose.n_corners if pose else 0, "mask_pixels": int(mask.sum()),
                             "mask_method": "given" if given else "geometry"})
