@@ -80,7 +80,7 @@ def _nerfstudio(truth, directory, masks=True):
 def _colmap(truth, directory, points=True):
     """The session's views as a COLMAP text model (world-to-camera, OpenCV), poses moved by _similarity(), with
     sparse points on the object and the plate."""
-    session, gt = truth
+    session = truth[0]
     S = _similarity()
     model = directory / "sparse" / "0"
     model.mkdir(parents=True)
@@ -96,17 +96,27 @@ def _colmap(truth, directory, points=True):
         x, y, z, w = quat_from_R(T[:3, :3])
         lines += [f"{i + 1} {w} {x} {y} {z} {' '.join(map(str, T[:3, 3]))} 1 {name}", ""]
     (model / "images.txt").write_text("\n".join(lines) + "\n")
-    rows = []
-    if points:
-        mesh = trimesh.load(gt.model_dir / "mesh.obj", force="mesh")
-        rng = np.random.default_rng(1)
-        on_object = transform_points(gt.T_turntable_obj, np.asarray(mesh.sample(600, seed=0)))
-        r, a = 0.15 * np.sqrt(rng.uniform(size=400)), rng.uniform(0, 2 * np.pi, 400)
-        on_plate = np.stack([r * np.cos(a), r * np.sin(a), np.zeros(400)], 1)
-        world = transform_points(S, np.concatenate([on_object, on_plate]))
-        rows = [f"{i + 1} {p[0]} {p[1]} {p[2]} 128 128 128 0.5" for i, p in enumerate(world)]
+    world = _sparse_points(truth) if points else []
+    rows = [f"{i + 1} {p[0]} {p[1]} {p[2]} 128 128 128 0.5" for i, p in enumerate(world)]
     (model / "points3D.txt").write_text("\n".join(rows) + "\n")
     return directory
+
+
+def _sparse_points(truth) -> np.ndarray:
+    """Points on the object and on the plate around it, as structure from motion finds them, moved by
+    _similarity()."""
+    gt = truth[1]
+    mesh = trimesh.load(gt.model_dir / "mesh.obj", force="mesh")
+    rng = np.random.default_rng(1)
+    on_object = transform_points(gt.T_turntable_obj, np.asarray(mesh.sample(600, seed=0)))
+    r, a = 0.15 * np.sqrt(rng.uniform(size=400)), rng.uniform(0, 2 * np.pi, 400)
+    on_plate = np.stack([r * np.cos(a), r * np.sin(a), np.zeros(400)], 1)
+    return transform_points(_similarity(), np.concatenate([on_object, on_plate]))
+
+
+def _camera_distance(truth, a: int, b: int) -> float:
+    views = truth[0].views
+    return float(np.linalg.norm(views[a].T_turntable_cam[:3, 3] - views[b].T_turntable_cam[:3, 3]))
 
 
 def _pose_errors(imported, session, about_z=False):
@@ -151,7 +161,7 @@ def test_nerfstudio_import_recovers_the_turntable_frame_metric_from_the_board(tr
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 def test_model_from_the_nerfstudio_import_has_the_true_size(nerfstudio_session, tmp_path):
     cfg = ReconstructConfig(object_name="box", holdout_every=0)
     cfg.mesh.voxel_m, cfg.mesh.target_faces, cfg.texture.size_px = 0.002, 3000, 64
@@ -162,16 +172,25 @@ def test_model_from_the_nerfstudio_import_has_the_true_size(nerfstudio_session, 
 
 
 def test_colmap_import_with_a_known_camera_distance_places_the_plate_from_the_points(truth, tmp_path):
-    session = truth[0]
     source = _colmap(truth, tmp_path / "colmap")
-    a, b = session.views[0].T_turntable_cam[:3, 3], session.views[VIEWS // 2].T_turntable_cam[:3, 3]
-    cfg = PosedImportConfig(scale_from=f"cam:IMG_0000.png,IMG_{VIEWS // 2:04d}.png={np.linalg.norm(a - b):.6f}")
+    half = VIEWS // 2
+    cfg = PosedImportConfig(scale_from=f"cam:IMG_0000.png,IMG_{half:04d}.png={_camera_distance(truth, 0, half):.6f}")
     summary = import_posed(source, tmp_path / "session", cfg, source="colmap")
     assert summary["scale_from"] == "distance" and summary["masks_made"] == VIEWS
-    imported = read_session(tmp_path / "session")
-    rot, trans = _pose_errors(imported, session, about_z=True)  # X points at the first camera here
+    rot, trans = _pose_errors(read_session(tmp_path / "session"), truth[0], about_z=True)  # X: to the first camera
     assert np.median(rot) < 0.2 and rot.max() < 0.5, rot
     assert np.median(trans) < 2.0 and trans.max() < 4.0, trans
+
+
+def test_nerfstudio_import_with_a_known_camera_distance_and_its_point_cloud(truth, tmp_path):
+    source = _nerfstudio(truth, tmp_path / "dataset")
+    trimesh.PointCloud(_sparse_points(truth)).export(source / "sparse_pc.ply")
+    _edit(source, lambda t: t.update(ply_file_path="sparse_pc.ply"))
+    cfg = PosedImportConfig(scale_from=f"cam:frame_00003.png,frame_00011.png={_camera_distance(truth, 2, 10):.6f}")
+    summary = import_posed(source, tmp_path / "session", cfg)
+    assert summary["scale_from"] == "distance" and summary["masks_given"] == VIEWS
+    rot, trans = _pose_errors(read_session(tmp_path / "session"), truth[0], about_z=True)
+    assert np.median(rot) < 0.2 and np.median(trans) < 2.0, (rot, trans)
 
 
 def test_colmap_import_metric_from_the_board(truth, tmp_path):

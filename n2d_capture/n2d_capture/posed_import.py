@@ -8,7 +8,8 @@ Sources:
 - nerfstudio: `DIR/transforms.json` with nerfstudio's fields (`camera_model` OPENCV, PINHOLE or
   SIMPLE_PINHOLE; `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h`, `k1`, `k2`, `k3`, `p1`, `p2`, each also allowed per
   frame; `frames[].file_path`, `frames[].transform_matrix` camera-to-world with OpenGL camera axes, optional
-  `frames[].mask_path`). Paths are relative to DIR. The intrinsics must be the same in every frame.
+  `frames[].mask_path`; optional `ply_file_path`, the sparse points). Paths are relative to DIR. The
+  intrinsics must be the same in every frame.
 - colmap: a sparse model (`cameras`, `images`, `points3D` as `.bin` or `.txt`) in `DIR/sparse/0`,
   `DIR/sparse` or DIR itself, the images in `DIR/images` (or DIR) under their COLMAP names, optional masks
   in `DIR/masks` as COLMAP names them (`NAME.png`, or the image's stem with `.png`). One camera of model
@@ -23,7 +24,8 @@ The turntable frame (see docs/formats.md):
   of the circle fitted to them (a turntable's rotation axis), pointing to the board's printed side, or
   without a board to the side the cameras look down from.
 - Origin: where that axis meets the plate: the board's top plane, or without a board the plane under the
-  lowest sparse points near the axis (COLMAP's points3D: the plate top or the object's foot).
+  lowest sparse points near the axis (COLMAP's points3D or nerfstudio's `ply_file_path`: the plate top or
+  the object's foot).
 - X: the board's x axis (without a board: towards the first camera), level.
 
 Masks: the source's masks where it has them (nerfstudio `mask_path`, COLMAP `masks/`, or an image's alpha
@@ -173,7 +175,22 @@ def read_nerfstudio(directory: str | Path) -> PosedViews:
         names.append(str(frame["file_path"]))
         masks.append(_existing_file(directory, frame["mask_path"], where) if frame.get("mask_path") else None)
         poses.append(_rigid(frame["transform_matrix"], where) @ OPENGL_FROM_OPENCV)
-    return PosedViews(images, names, masks, intrinsics, np.stack(poses))
+    points = _ply_points(_existing_file(directory, data["ply_file_path"], str(path))) if data.get("ply_file_path") \
+        else None
+    return PosedViews(images, names, masks, intrinsics, np.stack(poses), points)
+
+
+def _ply_points(path: Path) -> np.ndarray | None:
+    """(P, 3) finite vertices of a PLY point cloud (nerfstudio's sparse_pc.ply), None when it has none."""
+    import trimesh
+
+    try:
+        vertices = np.asarray(trimesh.load(path, process=False).vertices, dtype=float).reshape(-1, 3)
+    except Exception as exc:  # trimesh raises many kinds on a damaged file
+        raise ContractError(f"cannot read the point cloud {path}: {exc}", "re-export it, or remove "
+                            "ply_file_path from transforms.json") from None
+    vertices = vertices[np.isfinite(vertices).all(1)]
+    return vertices if len(vertices) else None
 
 
 def _nerfstudio_intrinsics(d: dict, where: str) -> Intrinsics:
@@ -432,7 +449,8 @@ def _plate_height(views: PosedViews, S: np.ndarray, centre: np.ndarray, up: np.n
     """Height along `up` of the plate above the ring's centre, from the sparse points near the axis."""
     if views.points is None:
         raise ContractError("without the board nothing places the plate: the source has no sparse points",
-                            "let the board show in 3+ views, or import a COLMAP model with its points3D")
+                            "let the board show in 3+ views, or give the sparse points (COLMAP's points3D, "
+                            "nerfstudio's ply_file_path)")
     points = views.points @ S[:3, :3].T + S[:3, 3]
     offsets = points - centre
     heights = offsets @ up
@@ -521,7 +539,7 @@ def import_posed(source_dir: str | Path, session_dir: str | Path, cfg: PosedImpo
                             "board_rms_px": pose.rms_px if pose else None,
                             "board_corners": pose.n_corners if pose else 0, "mask_pixels": int(mask.sum()),
                             "mask_method": "given" if given else "geometry"})
-            sheet.append(overlay_view(rgb, mask, intr, inv_T(T), f"view {i}"))
+            sheet.append(overlay_view(rgb, mask, intr, inv_T(T), Path(views.names[i]).name))
         atomic_write_json(out.path / "transforms.json",
                           transforms_json(intr.K, intr.dist, intr.width, intr.height, frames))
         made = sum(r["mask_method"] == "geometry" for r in records)
