@@ -6,6 +6,7 @@ bad input is refused and leaves nothing behind."""
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +14,15 @@ import trimesh
 
 from n2d.cli import main as cli
 from n2d_capture.board import CalibrationError
-from n2d_capture.posed_import import PosedImportConfig, fit_ring, import_posed, parse_scale_from
+from n2d_capture.calibration import Intrinsics
+from n2d_capture.posed_import import (
+    PosedImportConfig,
+    PosedViews,
+    fit_ring,
+    import_posed,
+    parse_scale_from,
+    place_views,
+)
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ConfigError, ContractError
 from n2d_common.formats.session import OPENGL_FROM_OPENCV, PIXEL_EDGE, read_session
@@ -217,6 +226,35 @@ def test_ring_fit_and_scale_option():
     for bad in ("a.png,b.png=0.3", "cam:a.png,b.png=-1", "cam:a.png,b.png=x", "cam:a.png=0.3"):
         with pytest.raises(ConfigError):
             parse_scale_from(bad)
+
+
+def test_cameras_off_a_ring_take_up_from_the_table_plane_of_the_points():
+    """A hand-held walk at two heights is no ring: Z is the normal of the sparse points' dominant plane."""
+    rng = np.random.default_rng(2)
+    poses, truth_centres = [], []
+    for k in range(16):
+        azimuth, elevation = 2 * np.pi * k / 16, math.radians(20 if k % 2 else 50)
+        c = 0.5 * np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                            math.sin(elevation)])
+        z = (np.array([0, 0, 0.05]) - c) / np.linalg.norm(np.array([0, 0, 0.05]) - c)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        poses.append(_moved(_similarity(), make_T(np.stack([x, np.cross(z, x), z], 1), c)))
+        truth_centres.append(c)
+    r, a = 0.3 * np.sqrt(rng.uniform(size=2000)), rng.uniform(0, 2 * np.pi, 2000)
+    table = np.stack([r * np.cos(a), r * np.sin(a), np.zeros(2000)], 1)
+    box = rng.uniform([-0.05, -0.05, 0], [0.05, 0.05, 0.15], (500, 3))
+    views = PosedViews([Path(f"{k}.png") for k in range(16)], [f"{k}.png" for k in range(16)], [None] * 16,
+                       Intrinsics(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), 640, 480),
+                       np.stack(poses), transform_points(_similarity(), np.concatenate([table, box])))
+    distance = np.linalg.norm(truth_centres[0] - truth_centres[8])
+    placement, _ = place_views(views, [None] * 16, PosedImportConfig(scale_from=f"cam:0.png,8.png={distance}"))
+    assert placement.up_from == "points" and placement.plate_from == "points", placement
+    found = transform_points(placement.T_turntable_world, views.T_world_cam[:, :3, 3])
+    truth_centres = np.array(truth_centres)
+    assert np.abs(found[:, 2] - truth_centres[:, 2]).max() < 1e-3, found[:, 2] - truth_centres[:, 2]
+    radial = np.linalg.norm(found[:, :2], axis=1) - np.linalg.norm(truth_centres[:, :2], axis=1)
+    assert np.abs(radial).max() < 1e-3, radial
 
 
 def _edit(directory, change):

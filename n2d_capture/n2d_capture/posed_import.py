@@ -26,6 +26,9 @@ The turntable frame (see docs/formats.md):
 - Origin: where that axis meets the plate: the board's top plane, or without a board the plane under the
   lowest sparse points near the axis (COLMAP's points3D or nerfstudio's `ply_file_path`: the plate top or
   the object's foot).
+- Cameras that are no ring (a hand-held walk at several heights): Z is the board's normal, or without a board
+  the normal of the sparse points' dominant plane (the table), and the axis stands at the centre of the circle
+  fitted to the camera centres seen along it.
 - X: the board's x axis (without a board: towards the first camera), level.
 
 Masks: the source's masks where it has them (nerfstudio `mask_path`, COLMAP `masks/`, or an image's alpha
@@ -83,6 +86,12 @@ class PosedImportConfig:
     max_alignment_mm: float = 5.0
     """Largest RMS distance between the imported camera centres, scaled and moved onto the board's, and
     the camera centres seen from the board, mm."""
+    max_ring_residual: float = 0.05
+    """Camera centres further (RMS) from the circle fitted to them than this share of its radius are no ring
+    (a hand-held walk at several heights): Z then is the board's normal, or the normal of the sparse points'
+    dominant plane (the table)."""
+    plane_tolerance_m: float = 0.003
+    """Sparse points within this distance of a plane count as on it (the table plane without a ring), metres."""
     plate_radius_fraction: float = 0.5
     """Without a board: sparse points within this share of the camera ring's radius of the axis are searched
     for the plate's height."""
@@ -94,6 +103,8 @@ class PosedImportConfig:
             raise ValueError("min_board_views must be >= 3")
         if self.max_alignment_mm <= 0:
             raise ValueError("max_alignment_mm must be > 0")
+        if self.max_ring_residual <= 0 or self.plane_tolerance_m <= 0:
+            raise ValueError("max_ring_residual and plane_tolerance_m must be > 0")
         if not 0 < self.plate_radius_fraction <= 1:
             raise ValueError("plate_radius_fraction must be in (0, 1]")
         if not 0 <= self.plate_percentile < 50:
@@ -318,6 +329,8 @@ class Placement:
     """board or distance."""
     scale: float
     """Metres per source unit."""
+    up_from: str
+    """ring (the camera ring's axis), board (its normal) or points (the dominant plane of the sparse points)."""
     plate_from: str
     """board or points: what fixed the plate's height."""
     alignment_mm: float | None
@@ -332,29 +345,60 @@ class Placement:
     def to_dict(self) -> dict:
         """JSON-safe form for capture.json."""
         return {"T_turntable_world": self.T_turntable_world.tolist(), "scale_from": self.scale_from,
-                "scale_m_per_unit": self.scale, "plate_from": self.plate_from, "alignment_mm": self.alignment_mm,
+                "scale_m_per_unit": self.scale, "up_from": self.up_from,
+                "plate_from": self.plate_from, "alignment_mm": self.alignment_mm,
                 "ring_residual_mm": self.ring_residual_mm, "ring_radius_m": self.ring_radius_m,
                 "board_tilt_deg": self.board_tilt_deg}
 
 
 def fit_ring(centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     """(unit normal of arbitrary sign, circle centre, radius, RMS distance from the circle) of (V, 3) points
-    on a ring: the plane by SVD, the circle in it by an algebraic least-squares fit (Kasa)."""
-    mean = centres.mean(0)
-    _, S, Vt = np.linalg.svd(centres - mean)
+    on a ring: the plane by SVD, the circle in it by `axis_through`."""
+    _, S, Vt = np.linalg.svd(centres - centres.mean(0))
     if len(centres) < 3 or S[1] < 0.05 * S[0]:
         raise CalibrationError(f"the {len(centres)} camera centres do not span a ring (they lie on a line)",
                                "import views from around the object: a turntable sweep or a walk around it")
-    u, v, normal = Vt
-    xy = np.stack([(centres - mean) @ u, (centres - mean) @ v], 1)
-    A = np.column_stack([2 * xy, np.ones(len(xy))])
-    (a, b, c), *_ = np.linalg.lstsq(A, (xy ** 2).sum(1), rcond=None)
-    radius = math.sqrt(max(c + a * a + b * b, 0.0))
-    centre = mean + a * u + b * v
+    normal = Vt[2]
+    centre, radius = axis_through(centres, normal)
     offsets = centres - centre
     height = offsets @ normal
     radial = np.linalg.norm(offsets - height[:, None] * normal, axis=1) - radius
     return normal, centre, radius, float(np.sqrt((radial ** 2 + height ** 2).mean()))
+
+
+def axis_through(centres: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, float]:
+    """(a point of the axis along `up` the (V, 3) camera centres stand around, their mean distance from it):
+    the circle fitted to their projections onto the plane normal to `up` (algebraic least squares, Kasa),
+    at their mean height."""
+    mean = centres.mean(0)
+    u = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(up, u)
+    xy = np.stack([(centres - mean) @ u, (centres - mean) @ v], 1)
+    A = np.column_stack([2 * xy, np.ones(len(xy))])
+    (a, b, c), *_ = np.linalg.lstsq(A, (xy ** 2).sum(1), rcond=None)
+    return mean + a * u + b * v, math.sqrt(max(c + a * a + b * b, 0.0))
+
+
+def table_plane(points: np.ndarray, tolerance_m: float, iterations: int = 300,
+                seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """(unit normal of arbitrary sign, a point, inlier share) of the dominant plane of (P, 3) points in metres:
+    RANSAC over point triples (at most 5000 points scored), refined by SVD over the inliers."""
+    rng = np.random.default_rng(seed)
+    sample = points[rng.choice(len(points), min(len(points), 5000), replace=False)]
+    triples = sample[rng.integers(0, len(sample), (iterations, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    good = length > 1e-12
+    normals, base = normals[good] / length[good, None], triples[good, 0]
+    if not len(normals):
+        raise ContractError("the sparse points hold no plane", "let the board show in 3+ views")
+    counts = (np.abs(np.einsum("ij,pj->ip", normals, sample) - (normals * base).sum(1)[:, None]) < tolerance_m).sum(1)
+    best = int(np.argmax(counts))
+    inliers = points[np.abs((points - base[best]) @ normals[best]) < tolerance_m]
+    centre = inliers.mean(0)
+    normal = np.linalg.svd(inliers - centre)[2][2]
+    return normal, centre, float(counts[best] / len(sample))
 
 
 def _similarity_T(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -419,39 +463,52 @@ def place_views(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfi
     scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
     T_M_cam = S @ views.T_world_cam  # metric frame M: the board's, or the source's scaled
     T_M_cam[:, :3, :3] /= scale
-    normal, centre, radius, ring_rms = fit_ring(T_M_cam[:, :3, 3])
-
+    centres = T_M_cam[:, :3, 3]
+    normal, centre, radius, ring_rms = fit_ring(centres)
+    is_ring = ring_rms <= cfg.max_ring_residual * radius
+    looking = T_M_cam[:, :3, 2].mean(0)  # the cameras look down at the object: against up
     board_up = np.array([0.0, 0.0, -1.0])  # board z points into the board
-    if scale_from is None:
+    tilt = None
+    if scale_from is None:  # the plate is the board's top plane, z = 0 in M
+        plate_normal, plate_point, plate_from = board_up, np.zeros(3), "board"
+        normal, up_from = (normal, "ring") if is_ring else (board_up, "board")
         normal = normal if normal @ board_up > 0 else -normal
-        origin = centre + (-centre[2] / normal[2]) * normal  # on the board's top plane, z = 0
-        x = np.array([1.0, 0.0, 0.0])
         tilt = math.degrees(math.acos(min(1.0, float(normal @ board_up))))
-        plate_from = "board"
-    else:
-        # The cameras look down at the object: their optical axes (z) point against up.
-        normal = normal if normal @ T_M_cam[:, :3, 2].mean(0) < 0 else -normal
-        origin = centre + _plate_height(views, S, centre, normal, radius, cfg) * normal
-        x, tilt, plate_from = T_M_cam[0, :3, 3] - origin, None, "points"
+    elif is_ring:  # a plane normal to the axis, under the lowest points near it
+        normal, up_from, plate_from = (normal if normal @ looking < 0 else -normal), "ring", "points"
+        plate_normal = normal
+        plate_point = centre + _plate_height(_metric_points(views, S), centre, normal, radius, cfg) * normal
+    else:  # no ring: the dominant plane of the sparse points is the table
+        plate_normal, plate_point, _ = table_plane(_metric_points(views, S), cfg.plane_tolerance_m)
+        normal = plate_normal = plate_normal if plate_normal @ looking < 0 else -plate_normal
+        up_from, plate_from = "points", "points"
+    if not is_ring:
+        centre, radius = axis_through(centres, normal)
+    origin = centre + (plate_normal @ (plate_point - centre)) / (plate_normal @ normal) * normal
+    x = np.array([1.0, 0.0, 0.0]) if scale_from is None else centres[0] - origin
     x = x - (x @ normal) * normal
     if np.linalg.norm(x) < 1e-9:
         raise CalibrationError("the X axis of the turntable frame is undefined (the board stands upright)",
                                "the board must lie flat on the plate")
     x /= np.linalg.norm(x)
     T_turntable_M = inv_T(make_T(np.stack([x, np.cross(normal, x), normal], axis=1), origin))
-    placement = Placement(T_turntable_M @ S, "board" if scale_from is None else "distance", scale, plate_from,
-                          alignment, 1000 * ring_rms, radius, tilt)
+    placement = Placement(T_turntable_M @ S, "board" if scale_from is None else "distance", scale, up_from,
+                          plate_from, alignment, 1000 * ring_rms, radius, tilt)
     return placement, board_poses
 
 
-def _plate_height(views: PosedViews, S: np.ndarray, centre: np.ndarray, up: np.ndarray, radius: float,
-                  cfg: PosedImportConfig) -> float:
-    """Height along `up` of the plate above the ring's centre, from the sparse points near the axis."""
-    if views.points is None:
+def _metric_points(views: PosedViews, S: np.ndarray) -> np.ndarray:
+    """The sparse points carried by the similarity S into metres; ContractError when the source has none."""
+    if views.points is None or len(views.points) < 10:
         raise ContractError("without the board nothing places the plate: the source has no sparse points",
                             "let the board show in 3+ views, or give the sparse points (COLMAP's points3D, "
                             "nerfstudio's ply_file_path)")
-    points = views.points @ S[:3, :3].T + S[:3, 3]
+    return views.points @ S[:3, :3].T + S[:3, 3]
+
+
+def _plate_height(points: np.ndarray, centre: np.ndarray, up: np.ndarray, radius: float,
+                  cfg: PosedImportConfig) -> float:
+    """Height along `up` of the plate above the ring's centre, from the (P, 3) points near the axis, metres."""
     offsets = points - centre
     heights = offsets @ up
     lateral = np.linalg.norm(offsets - heights[:, None] * up, axis=1)
