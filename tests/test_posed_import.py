@@ -207,8 +207,9 @@ def test_colmap_import_metric_from_the_board(truth, tmp_path):
     (source / "masks").mkdir()
     for i, view in enumerate(truth[0].views):
         shutil.copy(view.mask, source / "masks" / f"IMG_{i:04d}.png.png")
-    summary = import_posed(source, tmp_path / "session", PosedImportConfig(), source="colmap")
-    assert summary["scale_from"] == "board" and summary["masks_given"] == VIEWS
+    assert cli(["capture", "import", "--from", "colmap", str(source), str(tmp_path / "session")]) == 0
+    extra = open_stage(tmp_path / "session", "capture_session")["extra"]
+    assert extra["scale_from"] == "board" and extra["masks_given"] == VIEWS
     rot, trans = _pose_errors(read_session(tmp_path / "session"), truth[0])
     assert np.median(rot) < 0.2 and np.median(trans) < 1.5, (rot, trans)
 
@@ -292,6 +293,8 @@ def test_bad_input_is_refused_and_nothing_is_written(truth, tmp_path, capsys):
     with pytest.raises(ConfigError, match="too few to make the session metric") as exc:
         import_posed(source, out, PosedImportConfig())  # the board in 2 views: no scale
     assert "--scale-from" in exc.value.hint and _nothing_written(out)
+    assert cli(["capture", "import", str(source / "images"), str(out), "--scale-from", "cam:a,b=1"]) == 2
+    assert "--scale-from needs --from" in capsys.readouterr().err and _nothing_written(out)
     assert cli(["capture", "import", "--from", "nerfstudio", str(source), str(out)]) == 2
     assert "hint:" in capsys.readouterr().err and _nothing_written(out)
     with pytest.raises(ConfigError, match="no view named"):

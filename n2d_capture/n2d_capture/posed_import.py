@@ -464,12 +464,31 @@ def place_views(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfi
     T_M_cam = S @ views.T_world_cam  # metric frame M: the board's, or the source's scaled
     T_M_cam[:, :3, :3] /= scale
     centres = T_M_cam[:, :3, 3]
-    normal, centre, radius, ring_rms = fit_ring(centres)
+    ring = fit_ring(centres)
+    normal, origin, radius, up_from, plate_from, tilt = _up_and_origin(
+        views, S, ring, T_M_cam[:, :3, 2].mean(0), board=scale_from is None, cfg=cfg)
+    x = np.array([1.0, 0.0, 0.0]) if scale_from is None else centres[0] - origin
+    x = x - (x @ normal) * normal
+    if np.linalg.norm(x) < 1e-9:
+        raise CalibrationError("the X axis of the turntable frame is undefined (the board stands upright)",
+                               "the board must lie flat on the plate")
+    x /= np.linalg.norm(x)
+    T_turntable_M = inv_T(make_T(np.stack([x, np.cross(normal, x), normal], axis=1), origin))
+    placement = Placement(T_turntable_M @ S, "board" if scale_from is None else "distance", scale, up_from,
+                          plate_from, alignment, 1000 * ring[3], radius, tilt)
+    return placement, board_poses
+
+
+def _up_and_origin(views: PosedViews, S: np.ndarray, ring: tuple, looking: np.ndarray, *, board: bool,
+                   cfg: PosedImportConfig) -> tuple[np.ndarray, np.ndarray, float, str, str, float | None]:
+    """(Z, origin, ring radius, up_from, plate_from, board tilt in degrees or None) of the turntable frame in
+    the metric frame M (the board's with `board`, else the source's scaled by S); `ring` is `fit_ring`'s
+    result, `looking` the cameras' mean optical axis (they look down at the object: against up)."""
+    normal, centre, radius, ring_rms = ring
     is_ring = ring_rms <= cfg.max_ring_residual * radius
-    looking = T_M_cam[:, :3, 2].mean(0)  # the cameras look down at the object: against up
     board_up = np.array([0.0, 0.0, -1.0])  # board z points into the board
     tilt = None
-    if scale_from is None:  # the plate is the board's top plane, z = 0 in M
+    if board:  # the plate is the board's top plane, z = 0 in M
         plate_normal, plate_point, plate_from = board_up, np.zeros(3), "board"
         normal, up_from = (normal, "ring") if is_ring else (board_up, "board")
         normal = normal if normal @ board_up > 0 else -normal
@@ -483,18 +502,9 @@ def place_views(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfi
         normal = plate_normal = plate_normal if plate_normal @ looking < 0 else -plate_normal
         up_from, plate_from = "points", "points"
     if not is_ring:
-        centre, radius = axis_through(centres, normal)
+        centre, radius = axis_through(views.T_world_cam[:, :3, 3] @ S[:3, :3].T + S[:3, 3], normal)
     origin = centre + (plate_normal @ (plate_point - centre)) / (plate_normal @ normal) * normal
-    x = np.array([1.0, 0.0, 0.0]) if scale_from is None else centres[0] - origin
-    x = x - (x @ normal) * normal
-    if np.linalg.norm(x) < 1e-9:
-        raise CalibrationError("the X axis of the turntable frame is undefined (the board stands upright)",
-                               "the board must lie flat on the plate")
-    x /= np.linalg.norm(x)
-    T_turntable_M = inv_T(make_T(np.stack([x, np.cross(normal, x), normal], axis=1), origin))
-    placement = Placement(T_turntable_M @ S, "board" if scale_from is None else "distance", scale, up_from,
-                          plate_from, alignment, 1000 * ring_rms, radius, tilt)
-    return placement, board_poses
+    return normal, origin, radius, up_from, plate_from, tilt
 
 
 def _metric_points(views: PosedViews, S: np.ndarray) -> np.ndarray:
