@@ -294,7 +294,10 @@ def test_bad_input_is_refused_and_nothing_is_written(truth, tmp_path, capsys):
         import_posed(source, out, PosedImportConfig())  # the board in 2 views: no scale
     assert "--scale-from" in exc.value.hint and _nothing_written(out)
     assert cli(["capture", "import", str(source / "images"), str(out), "--scale-from", "cam:a,b=1"]) == 2
-    assert "--scale-from needs --from" in capsys.readouterr().err and _nothing_written(out)
+    assert "--scale-from and posed.* settings need --from" in capsys.readouterr().err and _nothing_written(out)
+    assert cli(["capture", "import", "--from", "nerfstudio", str(source), str(out), "--set",
+                "posed.min_board_views=2"]) == 2  # a config check: at least 3
+    assert "min_board_views" in capsys.readouterr().err and _nothing_written(out)
     assert cli(["capture", "import", "--from", "nerfstudio", str(source), str(out)]) == 2
     assert "hint:" in capsys.readouterr().err and _nothing_written(out)
     with pytest.raises(ConfigError, match="no view named"):

@@ -197,12 +197,15 @@ def cmd_capture(args) -> int:
 def cmd_capture_import(args) -> int:
     from n2d_capture.importer import import_photos
 
+    # posed.KEY=VALUE sets PosedImportConfig (--from nerfstudio|colmap), every other key the CaptureConfig
+    posed = [s.removeprefix("posed.") for s in args.set if s.startswith("posed.")]
+    args.set = [s for s in args.set if not s.startswith("posed.")]
     cfg = _capture_config(args)
     if args.source != "photos":
-        return _import_posed(args, cfg)
-    if args.scale_from:
-        raise ConfigError("--scale-from needs --from nerfstudio or --from colmap",
-                       "photos are made metric by the board; drop --scale-from")
+        return _import_posed(args, cfg, posed)
+    if args.scale_from or posed:
+        raise ConfigError("--scale-from and posed.* settings need --from nerfstudio or --from colmap",
+                          "photos are made metric by the board; drop them")
     summary = import_photos(args.photos, args.out, cfg, empty_dir=args.empty, intrinsics=args.intrinsics,
                             overwrite=args.overwrite, progress=_progress_bar("import"))
     print(f"import: {summary['views']} views (posed {_posed_counts(summary)}); "
@@ -210,14 +213,19 @@ def cmd_capture_import(args) -> int:
     return 0
 
 
-def _import_posed(args, cfg) -> int:
+def _import_posed(args, cfg, posed: list[str]) -> int:
+    from dataclasses import replace
+
     from n2d_capture.posed_import import PosedImportConfig, import_posed
+    from n2d_common.config import load_config
 
     if args.empty or args.intrinsics:
         raise ConfigError(f"--empty and --intrinsics are for photos; a {args.source} source brings its own camera",
-                       "drop them, or import the photos without --from")
-    summary = import_posed(args.photos, args.out, PosedImportConfig(capture=cfg, scale_from=args.scale_from or ""),
-                           source=args.source, overwrite=args.overwrite, progress=_progress_bar("import"))
+                          "drop them, or import the photos without --from")
+    posed_cfg = load_config(PosedImportConfig, None, posed)
+    posed_cfg = replace(posed_cfg, capture=cfg, scale_from=args.scale_from or posed_cfg.scale_from)
+    summary = import_posed(args.photos, args.out, posed_cfg, source=args.source, overwrite=args.overwrite,
+                           progress=_progress_bar("import"))
     scale = (f"metric from the board ({summary['alignment_mm']:.2f} mm RMS)" if summary["scale_from"] == "board"
              else "metric from --scale-from")
     print(f"import: {summary['views']} {args.source} views, {scale}; camera ring residual "
