@@ -31,7 +31,6 @@ from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.session import render_session, small_world
 
 VIEWS = 24
-BOX_MM = np.array([90.0, 60.0, 140.0])
 SCALE = 3.7
 """Source units per metre of the thrown-away frame."""
 
@@ -171,13 +170,16 @@ def test_nerfstudio_import_recovers_the_turntable_frame_metric_from_the_board(tr
 
 @pytest.mark.slow
 @pytest.mark.timeout(600)
-def test_model_from_the_nerfstudio_import_has_the_true_size(nerfstudio_session, tmp_path):
+def test_model_from_the_nerfstudio_import_has_the_true_size(truth, nerfstudio_session, tmp_path):
+    """The fast path (visual hull refined by photo-consistency) on the imported session: metric from the board
+    alone (measured: diameter -0.7 %, size +1.8 / +2.2 / +0.0 %; 24 views of 480x360 leave the hull's corners)."""
     cfg = ReconstructConfig(object_name="box", holdout_every=0)
     cfg.mesh.voxel_m, cfg.mesh.target_faces, cfg.texture.size_px = 0.002, 3000, 64
     report = reconstruct(nerfstudio_session, tmp_path / "model", cfg)
-    diameter = report["model"]["diameter_mm"]
-    assert abs(diameter / np.linalg.norm(BOX_MM) - 1) < 0.01, report["model"]
-    assert np.all(np.abs(np.array(report["model"]["size_mm"]) / BOX_MM - 1) < 0.05), report["model"]
+    true = json.loads((truth[1].model_dir / "models_info.json").read_text())["1"]
+    assert abs(report["model"]["diameter_mm"] / true["diameter"] - 1) < 0.01, report["model"]
+    true_size = np.array([true["size_x"], true["size_y"], true["size_z"]])
+    assert np.all(np.abs(np.array(report["model"]["size_mm"]) / true_size - 1) < 0.04), report["model"]
 
 
 def test_colmap_import_with_a_known_camera_distance_places_the_plate_from_the_points(truth, tmp_path):
