@@ -251,7 +251,7 @@ def test_cameras_off_a_ring_take_up_from_the_table_plane_of_the_points():
                        Intrinsics(np.array([[500.0, 0, 319.5], [0, 500, 239.5], [0, 0, 1]]), np.zeros(5), 640, 480),
                        np.stack(poses), transform_points(_similarity(), np.concatenate([table, box])))
     distance = np.linalg.norm(truth_centres[0] - truth_centres[8])
-    placement, _ = place_views(views, [None] * 16, PosedImportConfig(scale_from=f"cam:0.png,8.png={distance}"))
+    placement = place_views(views, [None] * 16, PosedImportConfig(scale_from=f"cam:0.png,8.png={distance}"))
     assert placement.up_from == "points" and placement.plate_from == "points", placement
     found = transform_points(placement.T_turntable_world, views.T_world_cam[:, :3, 3])
     truth_centres = np.array(truth_centres)
@@ -283,6 +283,7 @@ def test_bad_input_is_refused_and_nothing_is_written(truth, tmp_path, capsys):
         (lambda t: t.update(w=t["w"] // 2, h=t["h"] // 2), ContractError, "240x180"),
         (lambda t: t.update(camera_model="OPENCV_FISHEYE"), ContractError, "camera_model"),
         (lambda t: t.update(frames=[]), ContractError, "no frames"),
+        (lambda t: t.pop("cx"), ContractError, "missing 'cx'"),
     ]
     for change, error, match in cases:
         (source / "transforms.json").write_text(good)

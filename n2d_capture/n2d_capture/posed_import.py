@@ -49,7 +49,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from n2d_capture.board import CalibrationError, board_pose, detect_board
+from n2d_capture.board import BoardPose, CalibrationError, board_pose, detect_board
 from n2d_capture.calibration import Intrinsics
 from n2d_capture.capture import CaptureConfig, overlay_view
 from n2d_capture.importer import import_output, read_photo
@@ -65,6 +65,8 @@ from n2d_common.progress import Progress, ProgressFn, no_progress
 
 SOURCES = ("nerfstudio", "colmap")
 """Formats `import_posed` reads."""
+THUMB_WIDTH = 240
+"""Width of a view on the contact sheet, pixels."""
 _NERFSTUDIO_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2")
 _SCALE_FROM = re.compile(r"^cam:([^,=]+),([^,=]+)=([^=]+)$")
@@ -210,11 +212,11 @@ def _nerfstudio_intrinsics(d: dict, where: str) -> Intrinsics:
         raise ContractError(f"{where}: camera_model {model!r} is not supported",
                             f"n2d reads {', '.join(_NERFSTUDIO_MODELS)} cameras; undistort the images first")
     try:
-        v = {k: float(d.get(k, 0.0)) for k in _INTRINSIC_KEYS}
+        v = {k: float(d[k] if k in ("fl_x", "cx", "cy") else d.get(k, 0.0)) for k in _INTRINSIC_KEYS}
         v["fl_y"] = float(d.get("fl_y", v["fl_x"]))
         width, height = int(d["w"]), int(d["h"])
     except KeyError as exc:
-        raise ContractError(f"{where}: missing {exc.args[0]!r}", "nerfstudio needs w and h") from None
+        raise ContractError(f"{where}: missing {exc.args[0]!r}", "nerfstudio needs fl_x, cx, cy, w and h") from None
     except (TypeError, ValueError) as exc:
         raise ContractError(f"{where}: intrinsics must be numbers ({exc})") from None
     if not all(math.isfinite(x) for x in v.values()) or v["k4"] != 0:
@@ -405,21 +407,21 @@ def _similarity_T(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return make_T(s * R, t)
 
 
-def _board_scale(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfig
-                 ) -> tuple[np.ndarray | None, float | None, list]:
-    """(similarity world to board frame, RMS centre disagreement mm, per-view board poses or None); the
-    similarity is None when the board shows in too few views."""
-    intr, spec = views.intrinsics, cfg.capture.board
+def find_board(rgb: np.ndarray, intr: Intrinsics, cfg: CaptureConfig) -> BoardPose | None:
+    """The board's pose in one view, None where it is not found or its corners fit worse than
+    `cfg.max_board_rms_px`."""
+    det = detect_board(rgb, cfg.board)
+    p = board_pose(det, intr.K, intr.dist) if det is not None else None
+    return p if p is not None and p.rms_px <= cfg.max_board_rms_px else None
 
-    def pose(rgb):
-        det = detect_board(rgb, spec)
-        p = board_pose(det, intr.K, intr.dist) if det is not None else None
-        return p if p is not None and p.rms_px <= cfg.capture.max_board_rms_px else None
 
-    poses = [pose(rgb) for rgb in rgbs]
+def _board_scale(views: PosedViews, poses: list[BoardPose | None], cfg: PosedImportConfig
+                 ) -> tuple[np.ndarray | None, float | None]:
+    """(similarity world to board frame, RMS centre disagreement mm) from the views' board poses (None where
+    a view has none); (None, None) when the board shows in too few views."""
     seen = [i for i, p in enumerate(poses) if p is not None]
     if len(seen) < cfg.min_board_views:
-        return None, None, poses
+        return None, None
     world = views.T_world_cam[seen, :3, 3]
     board = np.stack([inv_T(poses[i].T_cam_board)[:3, 3] for i in seen])
     s, R, t = similarity(world, board)
@@ -428,7 +430,7 @@ def _board_scale(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConf
         raise CalibrationError(f"the imported camera centres and those seen from the board disagree by "
                                f"{alignment:.1f} mm RMS over {len(seen)} views",
                                "check the board spec (--board, square size) and that the poses and images match")
-    return _similarity_T(s, R, t), alignment, poses
+    return _similarity_T(s, R, t), alignment
 
 
 def _distance_scale(views: PosedViews, scale_from: ScaleFrom) -> np.ndarray:
@@ -448,12 +450,13 @@ def _distance_scale(views: PosedViews, scale_from: ScaleFrom) -> np.ndarray:
     return np.diag([scale_from.distance_m / units] * 3 + [1.0])
 
 
-def place_views(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfig) -> tuple[Placement, list]:
-    """The turntable frame of the views (see the module doc), and each view's board pose (or None)."""
+def place_views(views: PosedViews, board_poses: list[BoardPose | None], cfg: PosedImportConfig) -> Placement:
+    """The turntable frame of the views (see the module doc); `board_poses`: each view's (`find_board`), or
+    None (all None with `cfg.scale_from`)."""
     scale_from = parse_scale_from(cfg.scale_from) if cfg.scale_from else None
-    alignment, board_poses = None, [None] * len(rgbs)
+    alignment = None
     if scale_from is None:
-        S, alignment, board_poses = _board_scale(views, rgbs, cfg)
+        S, alignment = _board_scale(views, board_poses, cfg)
         if S is None:
             seen = sum(p is not None for p in board_poses)
             raise ConfigError(f"the board shows in {seen} view(s), too few to make the session metric",
@@ -476,7 +479,7 @@ def place_views(views: PosedViews, rgbs: list[np.ndarray], cfg: PosedImportConfi
     T_turntable_M = inv_T(make_T(np.stack([x, np.cross(normal, x), normal], axis=1), origin))
     placement = Placement(T_turntable_M @ S, "board" if scale_from is None else "distance", scale, up_from,
                           plate_from, alignment, 1000 * ring[3], radius, tilt)
-    return placement, board_poses
+    return placement
 
 
 def _up_and_origin(views: PosedViews, S: np.ndarray, ring: tuple, looking: np.ndarray, *, board: bool,
@@ -531,12 +534,18 @@ def _plate_height(points: np.ndarray, centre: np.ndarray, up: np.ndarray, radius
 
 # ------------------------------------------------------------------------------------------------- writing
 
-def _read_view(image: Path, mask: Path | None, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
-    """(RGB, mask or None) of a view: the mask file, or the image's alpha channel where it has one."""
+def _read_image(image: Path, size: tuple[int, int]) -> np.ndarray:
+    """RGB of a view; ContractError when it is not of the camera's size."""
     rgb = read_photo(image)
     if (rgb.shape[1], rgb.shape[0]) != size:
         raise ContractError(f"{image} is {rgb.shape[1]}x{rgb.shape[0]}, the camera's images are {size[0]}x{size[1]}",
                             "all images must be of the camera's size (not downscaled copies)")
+    return rgb
+
+
+def _read_view(image: Path, mask: Path | None, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """(RGB, mask or None) of a view: the mask file, or the image's alpha channel where it has one."""
+    rgb = _read_image(image, size)
     if mask is not None:
         m = cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE)
         if m is None or (m.shape[1], m.shape[0]) != size:
@@ -547,6 +556,28 @@ def _read_view(image: Path, mask: Path | None, size: tuple[int, int]) -> tuple[n
     if raw is not None and raw.ndim == 3 and raw.shape[2] == 4 and raw[..., 3].min() < raw[..., 3].max():
         return rgb, raw[..., 3] > raw[..., 3].max() / 2
     return rgb, None
+
+
+def _write_view(directory: Path, i: int, views: PosedViews, T_turntable_cam: np.ndarray, pose: BoardPose | None,
+                cfg: CaptureConfig) -> tuple[dict, np.ndarray]:
+    """Write view `i`'s image and mask (the source's, or made from the board) into the session `directory`;
+    returns its capture.json record and its contact-sheet thumbnail."""
+    intr = views.intrinsics
+    rgb, mask = _read_view(views.images[i], views.masks[i], (intr.width, intr.height))
+    image_file, mask_file = f"images/{i:04d}.png", f"masks/{i:04d}.png"
+    write_png(directory / image_file, rgb)
+    given = mask is not None
+    if not given:
+        mask = foreground_mask_no_reference(rgb, ViewGeometry(intr.K, inv_T(T_turntable_cam), cfg.board), cfg.masks)
+    write_mask(directory / mask_file, mask)
+    record = {"index": i, "file": image_file, "mask": mask_file, "source": views.names[i], "angle_rad": None,
+              "pose_source": "imported", "board_rms_px": pose.rms_px if pose else None,
+              "board_corners": pose.n_corners if pose else 0, "mask_pixels": int(mask.sum()),
+              "mask_method": "given" if given else "geometry"}
+    thumb = overlay_view(rgb, mask, intr, inv_T(T_turntable_cam), Path(views.names[i]).name)
+    # the sheet's thumbnail size now, so a dataset of many large photos is never held in memory whole
+    return record, cv2.resize(thumb, (THUMB_WIDTH, round(thumb.shape[0] * THUMB_WIDTH / thumb.shape[1])),
+                              interpolation=cv2.INTER_AREA)
 
 
 def import_posed(source_dir: str | Path, session_dir: str | Path, cfg: PosedImportConfig, *,
@@ -577,36 +608,23 @@ def import_posed(source_dir: str | Path, session_dir: str | Path, cfg: PosedImpo
     source_dir = Path(source_dir)
     views = read_nerfstudio(source_dir) if source == "nerfstudio" else read_colmap(source_dir)
     intr, n = views.intrinsics, len(views.images)
-    read = []
-    for i, (image, mask) in enumerate(zip(views.images, views.masks)):
-        progress(Progress(0.3 * i / n, "reading", message=image.name))
-        read.append(_read_view(image, mask, (intr.width, intr.height)))
-    rgbs = [rgb for rgb, _ in read]
-    progress(Progress(0.3, "posing", message="board and camera ring"))
-    placement, board_poses = place_views(views, rgbs, cfg)
+    board_poses = [None] * n  # one image in memory at a time: datasets may hold hundreds of large photos
+    for i, image in enumerate(views.images if not cfg.scale_from else []):
+        progress(Progress(0.4 * i / n, "posing", message=f"board in {image.name}"))
+        board_poses[i] = find_board(_read_image(image, (intr.width, intr.height)), intr, cfg.capture)
+    placement = place_views(views, board_poses, cfg)
     T_turntable_cam = [placement.T_turntable_world @ T for T in views.T_world_cam]
     for T in T_turntable_cam:
         T[:3, :3] /= placement.scale
 
     with import_output(session_dir, to_dict(cfg), overwrite) as out:
         records, frames, sheet = [], [], []
-        for i, ((rgb, mask), T) in enumerate(zip(read, T_turntable_cam)):
+        for i, T in enumerate(T_turntable_cam):
             progress(Progress(0.4 + 0.5 * i / n, "writing", message=f"view {i + 1}/{n}"))
-            image_file, mask_file = f"images/{i:04d}.png", f"masks/{i:04d}.png"
-            write_png(out.path / image_file, rgb)
-            given = mask is not None
-            if not given:
-                mask = foreground_mask_no_reference(rgb, ViewGeometry(intr.K, inv_T(T), cfg.capture.board),
-                                                    cfg.capture.masks)
-            write_mask(out.path / mask_file, mask)
-            frames.append((image_file, mask_file, T))
-            pose = board_poses[i]
-            records.append({"index": i, "file": image_file, "mask": mask_file, "source": views.names[i],
-                            "angle_rad": None, "pose_source": "imported",
-                            "board_rms_px": pose.rms_px if pose else None,
-                            "board_corners": pose.n_corners if pose else 0, "mask_pixels": int(mask.sum()),
-                            "mask_method": "given" if given else "geometry"})
-            sheet.append(overlay_view(rgb, mask, intr, inv_T(T), Path(views.names[i]).name))
+            record, thumb = _write_view(out.path, i, views, T, board_poses[i], cfg.capture)
+            records.append(record)
+            frames.append((record["file"], record["mask"], T))
+            sheet.append(thumb)
         atomic_write_json(out.path / "transforms.json",
                           transforms_json(intr.K, intr.dist, intr.width, intr.height, frames))
         made = sum(r["mask_method"] == "geometry" for r in records)
@@ -614,7 +632,8 @@ def import_posed(source_dir: str | Path, session_dir: str | Path, cfg: PosedImpo
             "board": cfg.capture.board.to_dict(), "intrinsics": intr.to_dict(), "intrinsics_source": source,
             "views": records, "empty_views": 0, "process_s": round(time.monotonic() - t0, 2),
             "import": {"from": source, "source_dir": str(source_dir.absolute()), **placement.to_dict()}})
-        write_png(out.path / "contact_sheet.png", contact_sheet(sheet, cols=min(6, len(sheet)), thumb_width=240))
+        write_png(out.path / "contact_sheet.png", contact_sheet(sheet, cols=min(6, len(sheet)),
+                                                                   thumb_width=THUMB_WIDTH))
         summary = {"views": n, "posed_from_import": n, "scale_from": placement.scale_from,
                    "alignment_mm": placement.alignment_mm, "ring_residual_mm": placement.ring_residual_mm,
                    "board_tilt_deg": placement.board_tilt_deg, "masks_given": n - made, "masks_made": made}
