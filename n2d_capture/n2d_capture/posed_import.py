@@ -403,10 +403,6 @@ def table_plane(points: np.ndarray, tolerance_m: float, iterations: int = 300,
     return normal, centre, float(counts[best] / len(sample))
 
 
-def _similarity_T(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return make_T(s * R, t)
-
-
 def find_board(rgb: np.ndarray, intr: Intrinsics, cfg: CaptureConfig) -> BoardPose | None:
     """The board's pose in one view, None where it is not found or its corners fit worse than
     `cfg.max_board_rms_px`."""
@@ -430,7 +426,7 @@ def _board_scale(views: PosedViews, poses: list[BoardPose | None], cfg: PosedImp
         raise CalibrationError(f"the imported camera centres and those seen from the board disagree by "
                                f"{alignment:.1f} mm RMS over {len(seen)} views",
                                "check the board spec (--board, square size) and that the poses and images match")
-    return _similarity_T(s, R, t), alignment
+    return make_T(s * R, t), alignment  # board = s R world + t
 
 
 def _distance_scale(views: PosedViews, scale_from: ScaleFrom) -> np.ndarray:
