@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from n2d_common import __version__
-from n2d_common.errors import N2DError
+from n2d_common.errors import ConfigError, N2DError
 
 
 def _progress_bar(desc: str):
@@ -197,10 +197,39 @@ def cmd_capture(args) -> int:
 def cmd_capture_import(args) -> int:
     from n2d_capture.importer import import_photos
 
+    # posed.KEY=VALUE sets PosedImportConfig (--from nerfstudio|colmap), every other key the CaptureConfig
+    posed = [s.removeprefix("posed.") for s in args.set if s.startswith("posed.")]
+    args.set = [s for s in args.set if not s.startswith("posed.")]
     cfg = _capture_config(args)
+    if args.source != "photos":
+        return _import_posed(args, cfg, posed)
+    if args.scale_from or posed:
+        raise ConfigError("--scale-from and posed.* settings need --from nerfstudio or --from colmap",
+                          "photos are made metric by the board; drop them")
     summary = import_photos(args.photos, args.out, cfg, empty_dir=args.empty, intrinsics=args.intrinsics,
                             overwrite=args.overwrite, progress=_progress_bar("import"))
     print(f"import: {summary['views']} views (posed {_posed_counts(summary)}); "
+          f"wrote {args.out}/ (transforms.json, capture.json, contact_sheet.png)")
+    return 0
+
+
+def _import_posed(args, cfg, posed: list[str]) -> int:
+    from dataclasses import replace
+
+    from n2d_capture.posed_import import PosedImportConfig, import_posed
+    from n2d_common.config import load_config
+
+    if args.empty or args.intrinsics:
+        raise ConfigError(f"--empty and --intrinsics are for photos; a {args.source} source brings its own camera",
+                          "drop them, or import the photos without --from")
+    posed_cfg = load_config(PosedImportConfig, None, posed)
+    posed_cfg = replace(posed_cfg, capture=cfg, scale_from=args.scale_from or posed_cfg.scale_from)
+    summary = import_posed(args.photos, args.out, posed_cfg, source=args.source, overwrite=args.overwrite,
+                           progress=_progress_bar("import"))
+    scale = (f"metric from the board ({summary['alignment_mm']:.2f} mm RMS)" if summary["scale_from"] == "board"
+             else "metric from --scale-from")
+    print(f"import: {summary['views']} {args.source} views, {scale}; camera ring residual "
+          f"{summary['ring_residual_mm']:.2f} mm; masks {summary['masks_given']} given, {summary['masks_made']} made; "
           f"wrote {args.out}/ (transforms.json, capture.json, contact_sheet.png)")
     return 0
 
@@ -426,9 +455,17 @@ def build_parser() -> argparse.ArgumentParser:
                        "same angles (--empty), per-photo plate angles in PHOTOS/angles.csv (file,angle_deg) or "
                        "angles.json, and the camera intrinsics (--intrinsics; default: calibrated from the board). "
                        "Photos where the object hides the board: --set pose_from=colmap (structure from motion on "
-                       "the object; without the board in 3+ photos also --set sfm.camera_distance_m=METRES).")
-    p.add_argument("photos", type=Path, help="folder of .jpg/.png photos (sorted by name)")
+                       "the object; without the board in 3+ photos also --set sfm.camera_distance_m=METRES). "
+                       "--from nerfstudio|colmap imports views posed elsewhere (transforms.json, a COLMAP sparse "
+                       "model): the turntable frame from the camera ring and the board, metric from the board or "
+                       "--scale-from; their masks are used where they have them.")
+    p.add_argument("photos", type=Path, help="folder of .jpg/.png photos (sorted by name), or with --from the "
+                   "nerfstudio dataset (holds transforms.json) or COLMAP folder (images/, sparse/0/)")
     p.add_argument("out", type=Path, help="capture session directory to write")
+    p.add_argument("--from", dest="source", choices=("photos", "nerfstudio", "colmap"), default="photos",
+                   help="what PHOTOS holds: photos (default), posed views of nerfstudio or of COLMAP")
+    p.add_argument("--scale-from", metavar="cam:IMG_A,IMG_B=METRES", help="with --from: the known distance "
+                   "between two views' camera centres makes the session metric (default: the board in 3+ views)")
     p.add_argument("--empty", type=Path, help="folder of empty-plate photos, same count and order")
     p.add_argument("--intrinsics", type=Path, help="intrinsics JSON/YAML (n2d or ROS camera_info format)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing session")

@@ -164,7 +164,7 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
                         "mask_pixels": int(mask.sum()), "mask_method": "reference" if ref is not None else "geometry"})
         angle = view["angle_rad"]
         label = f"{math.degrees(angle):.0f} deg" if angle is not None else f"view {view['index']}"
-        sheet.append(_overlay(img, mask, intr, inv_T(T_turntable_cam), label))
+        sheet.append(overlay_view(img, mask, intr, inv_T(T_turntable_cam), label))
     progress(Progress(0.95, "writing"))
     atomic_write_json(directory / "transforms.json", transforms_json(intr.K, intr.dist, width, height, frames))
     sources = [r["pose_source"] for r in records]
@@ -184,7 +184,7 @@ def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = 
             "focal_px": intr.fx}
 
 
-def _overlay(rgb: np.ndarray, mask: np.ndarray, intr: Intrinsics, T_cam_turntable: np.ndarray,
+def overlay_view(rgb: np.ndarray, mask: np.ndarray, intr: Intrinsics, T_cam_turntable: np.ndarray,
              label: str) -> np.ndarray:
     """A view with its mask outline, the turntable axes (x red, y green, z blue, 5 cm) and a label."""
     out = draw_mask_outline(rgb, mask, (255, 255, 0), 2)

@@ -33,7 +33,8 @@ import csv
 import json
 import math
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -43,7 +44,7 @@ import numpy as np
 from n2d_capture.calibration import Intrinsics
 from n2d_capture.capture import CaptureConfig, process_session
 from n2d_common.config import read_mapping, to_dict
-from n2d_common.contracts import atomic_write_json, stage_output
+from n2d_common.contracts import StageWriter, atomic_write_json, stage_output
 from n2d_common.errors import ConfigError, ContractError
 from n2d_common.images import write_png
 from n2d_common.progress import Progress, ProgressFn, no_progress
@@ -143,7 +144,7 @@ def load_intrinsics(path: str | Path) -> Intrinsics:
         raise ConfigError(f"camera_info {path}: {exc}", "camera_matrix.data must hold 9 numbers") from None
 
 
-def _read_photo(path: Path) -> np.ndarray:
+def read_photo(path: Path) -> np.ndarray:
     """RGB uint8 of a photo, EXIF orientation applied (8-bit, alpha dropped, grey made RGB)."""
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
@@ -161,7 +162,7 @@ def _write_sweep(directory: Path, name: str, files: list[Path], angles_rad: list
     records = []
     for i, path in enumerate(files):
         report(i, path)
-        rgb = _read_photo(path)
+        rgb = read_photo(path)
         size = size or (rgb.shape[1], rgb.shape[0])
         if (rgb.shape[1], rgb.shape[0]) != size:
             raise ContractError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]}, other photos are {size[0]}x{size[1]}",
@@ -176,6 +177,18 @@ def _write_sweep(directory: Path, name: str, files: list[Path], angles_rad: list
         records.append(record)
     atomic_write_json(directory / f"{name}.json", {"sweep": name, "views": records})
     return size
+
+
+@contextmanager
+def import_output(session_dir: str | Path, config: dict, overwrite: bool) -> Iterator[StageWriter]:
+    """The session an import writes (`stage_output`), removed again when the import fails: an import is cheap
+    to redo, so it leaves nothing half-made and never resumes."""
+    with stage_output(session_dir, "capture_session", overwrite=overwrite, resume=False, config=config) as out:
+        try:
+            yield out
+        except BaseException:
+            shutil.rmtree(out.path, ignore_errors=True)
+            raise
 
 
 def import_photos(photos_dir: str | Path, session_dir: str | Path, cfg: CaptureConfig, *,
@@ -219,37 +232,32 @@ def import_photos(photos_dir: str | Path, session_dir: str | Path, cfg: CaptureC
     angles_rad = [math.radians(a) for a in angles] if angles is not None else [None] * len(photos)
     total = len(photos) + len(empties)
 
-    with stage_output(session_dir, "capture_session", overwrite=overwrite, resume=False,
-                      config=to_dict(cfg)) as out:
-        try:
-            def copying(done: int, path: Path) -> None:
-                progress(Progress(IMPORT_SHARE * done / total, "importing", message=path.name))
+    with import_output(session_dir, to_dict(cfg), overwrite) as out:
+        def copying(done: int, path: Path) -> None:
+            progress(Progress(IMPORT_SHARE * done / total, "importing", message=path.name))
 
-            size = _write_sweep(out.path, "images", photos, angles_rad, intr, None, copying)
-            if intr is not None and (intr.width, intr.height) != size:
-                raise ConfigError(f"the intrinsics in {intrinsics} are for {intr.width}x{intr.height} images, the "
-                                  f"photos are {size[0]}x{size[1]}", "give the calibration of this camera setting")
-            if empties:
-                _write_sweep(out.path, "empty", empties, angles_rad, intr, size,
-                             lambda done, path: copying(len(photos) + done, path))
+        size = _write_sweep(out.path, "images", photos, angles_rad, intr, None, copying)
+        if intr is not None and (intr.width, intr.height) != size:
+            raise ConfigError(f"the intrinsics in {intrinsics} are for {intr.width}x{intr.height} images, the "
+                              f"photos are {size[0]}x{size[1]}", "give the calibration of this camera setting")
+        if empties:
+            _write_sweep(out.path, "empty", empties, angles_rad, intr, size,
+                         lambda done, path: copying(len(photos) + done, path))
 
-            def processing(p: Progress) -> None:
-                progress(replace(p, fraction=IMPORT_SHARE + (1 - IMPORT_SHARE) * p.fraction))
+        def processing(p: Progress) -> None:
+            progress(replace(p, fraction=IMPORT_SHARE + (1 - IMPORT_SHARE) * p.fraction))
 
-            summary = process_session(out.path, cfg, processing)
-            info_path = out.path / "capture.json"
-            info = json.loads(info_path.read_text())
-            info["import"] = {"photos_dir": str(photos_dir.absolute()), "photos": [p.name for p in photos],
-                              "empty_dir": str(Path(empty_dir).absolute()) if empty_dir is not None else None,
-                              "empty_photos": [p.name for p in empties],
-                              "angles_from": angles_from,
-                              "intrinsics_file": str(Path(intrinsics).absolute()) if intrinsics is not None else None}
-            atomic_write_json(info_path, info)
-            inputs = {"photos": photos_dir.absolute()}
-            if empty_dir is not None:
-                inputs["empty"] = Path(empty_dir).absolute()
-            out.finish(config=to_dict(cfg), inputs=inputs, extra=summary)
-        except BaseException:
-            shutil.rmtree(out.path, ignore_errors=True)  # an import is cheap to redo: leave nothing half-made
-            raise
+        summary = process_session(out.path, cfg, processing)
+        info_path = out.path / "capture.json"
+        info = json.loads(info_path.read_text())
+        info["import"] = {"photos_dir": str(photos_dir.absolute()), "photos": [p.name for p in photos],
+                          "empty_dir": str(Path(empty_dir).absolute()) if empty_dir is not None else None,
+                          "empty_photos": [p.name for p in empties],
+                          "angles_from": angles_from,
+                          "intrinsics_file": str(Path(intrinsics).absolute()) if intrinsics is not None else None}
+        atomic_write_json(info_path, info)
+        inputs = {"photos": photos_dir.absolute()}
+        if empty_dir is not None:
+            inputs["empty"] = Path(empty_dir).absolute()
+        out.finish(config=to_dict(cfg), inputs=inputs, extra=summary)
     return {"views": len(photos), "message": "", **summary}

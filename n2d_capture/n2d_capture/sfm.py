@@ -259,7 +259,7 @@ def _pose(image) -> np.ndarray:
     return T
 
 
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """(s, R, t) minimising |dst - (s R src + t)|^2 over (N, 3) point pairs (Umeyama)."""
     ms, md = src.mean(0), dst.mean(0)
     a, b = src - ms, dst - md
@@ -309,7 +309,7 @@ def sfm_poses(image_dir: Path, names: list[str], images: Sequence[np.ndarray], i
     if len(both) >= 3:
         centres_world = np.stack([inv_T(T_world[i])[:3, 3] for i in both])
         centres_board = np.stack([inv_T(board_poses[i])[:3, 3] for i in both])
-        s, R, t = _similarity(centres_world, centres_board)  # board = s R world + t, in metres
+        s, R, t = similarity(centres_world, centres_board)  # board = s R world + t, in metres
         alignment = float(1000 * np.sqrt(((s * centres_world @ R.T + t - centres_board) ** 2).sum(1).mean()))
         if alignment > cfg.max_alignment_mm:
             raise CalibrationError(f"the COLMAP camera centres and the board's disagree by {alignment:.1f} mm RMS",
