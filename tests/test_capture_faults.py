@@ -58,6 +58,7 @@ class SilentAfter:
         return self.source.grab(after_s, timeout_s)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_silent_camera_and_missing_board(tmp_path, sim, ros_domain):
     session = tmp_path / "session"

@@ -83,6 +83,7 @@ def _fiducial_markers(gray: np.ndarray) -> int:
     return max(0 if ids is None else len(ids) for ids in found)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("engine", ["cycles", "raster"])
 def test_fiducial_sheets(tmp_path, engine):
     """Fiducial sheets are real, decodable ChArUco boards and ArUco grids, and with scene.boards=1 they lie in
@@ -135,6 +136,7 @@ def test_nvlabs_dope_loader_reads_it(dataset):
             np.testing.assert_allclose(np.array(dims) / 100.0, models[info["class"]].size_m)
 
 
+@pytest.mark.slow
 def test_resume_after_cancel_is_reproducible(dataset, tmp_path):
     """Cancelled after a frame, then resumed: the same frames as one uninterrupted run of the same config."""
     out = tmp_path / "ds"
@@ -189,6 +191,7 @@ def test_bad_input_writes_nothing(dataset, tmp_path):
     assert read_manifest(dataset)["complete"]
 
 
+@pytest.mark.slow
 def test_cli_two_workers(tmp_path):
     """`n2d dataset` shards frames over two render processes; errors are one line with a hint."""
     out = tmp_path / "ds"

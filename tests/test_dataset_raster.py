@@ -61,6 +61,7 @@ def test_contract_and_exact_annotations(dataset):
         assert len(gt) == len(dope["objects"]) >= 2
 
 
+@pytest.mark.slow
 def test_same_frames_whatever_the_workers_and_resumes(dataset, tmp_path):
     """Two workers, and a run cancelled after a frame then resumed, write the frames one worker writes, byte for
     byte (a frame depends only on (seed, frame))."""
@@ -173,6 +174,7 @@ def test_resting_poses():
     assert how == "upright" and R[:, 2] @ [0, 0, 1] == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_mixed_dataset_and_training_mix(tmp_path):
     """A raster dataset with photoreal_frames renders those frames with Cycles; training draws from the two kinds
     by photoreal_mix, and refuses a mix the frames cannot give, or a dataset of another object."""

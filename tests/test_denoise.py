@@ -29,6 +29,7 @@ def _distance_to_box(points: np.ndarray) -> np.ndarray:
     return np.where(outside > 0, outside, -q.max(axis=1))
 
 
+@pytest.mark.slow
 def test_denoise_flattens_a_rippled_box_and_keeps_its_corners():
     noisy = _rippled(_box(), 0.0003)
     out = denoise(noisy, DenoiseConfig())
@@ -45,6 +46,7 @@ def test_denoise_flattens_a_rippled_box_and_keeps_its_corners():
     assert nearest.max() < 0.0015, nearest
 
 
+@pytest.mark.slow
 def test_denoise_does_not_shrink_a_sphere():
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
     noisy = _rippled(sphere, 0.0003, seed=1)

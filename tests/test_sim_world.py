@@ -40,6 +40,7 @@ def sim_world(tmp_path, ros_domain):
             yield launch, SimCameraClient(node), args, logs
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_driver_turns_the_world_and_ground_truth_matches_the_image(sim_world):
     launch, client, args, logs = sim_world

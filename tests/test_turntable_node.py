@@ -92,6 +92,7 @@ def test_rotate_action_feedback_cancel_and_joint_states(sim, client_node):
         assert not launch.dead()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_wrong_port_is_one_clear_fatal_line(tmp_path, ros_domain):
     logs = []
@@ -151,6 +152,7 @@ def _port_quiet(sim, for_s: float = 0.6) -> bool:
     return sim.control.state()["rx_packets"] == before
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_lifecycle_transitions_torque_goals_and_plate_tf(sim, client_node, tmp_path):
     logs = []
@@ -263,6 +265,7 @@ def test_servo_fault_mid_motion_is_the_error_transition_and_configure_recovers(s
         assert not launch.dead()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_pulled_cable_is_the_error_transition_and_autostart_comes_back(sim, client_node):
     logs = []
