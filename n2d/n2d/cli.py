@@ -550,7 +550,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="preset: lite (CPU), vgg (DOPE as published: 6 stages, batch 64, lr 1e-4), tiny (tests)")
     p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")
     p.add_argument("--minutes", type=float, help="train for this many minutes (the learning rate anneals over "
-                   "them; the preset's epochs no longer stop it, an explicit --epochs still does), then export")
+                   "them; the preset's epochs do not stop it, an explicit --epochs does), then export")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model, or discard unfinished "
                    "training of another config")
     _add_config_options(p)

@@ -76,7 +76,7 @@ class PipelineConfig:
     """Stops of the test sweep, half a step off the object sweep's (the board-posed test set; 0: none)."""
     require_empty_plate: bool = True
     """Refuse the object sweep until the empty-plate sweep is recorded: without that reference the masks
-    segment the object far worse (mean IoU 0.61 instead of 0.99 on the sample box, benchmarks/masks.py)."""
+    segment the object far worse (benchmarks/masks.py measures both)."""
     method: Literal["fast", "neus"] = "fast"
     """Reconstruction method."""
     frames: int = 3000
@@ -89,8 +89,8 @@ class PipelineConfig:
     preset: Literal["lite", "vgg", "tiny"] = "lite"
     """DOPE training preset (lite: CPU, vgg: DOPE as published, GPU; tiny: tests)."""
     train_minutes: float = 13.0
-    """Minutes of training (the learning rate anneals over them; the preset's epochs no longer stop it, an epochs
-    value in `train` still does); 0: the preset's epochs."""
+    """Minutes of training (the learning rate anneals over them; the preset's epochs do not stop it, an epochs
+    value in `train` does); 0: the preset's epochs."""
     precisions: list[str] = field(default_factory=lambda: ["fp32", "int8"])
     """ONNX models to evaluate (int8 only where the training exported one)."""
     capture: dict = field(default_factory=dict)
