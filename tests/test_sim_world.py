@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from helpers import list_parameters
 
 from n2d.launch_description import load
 from n2d.launcher import Launch
@@ -37,17 +38,21 @@ def sim_world(tmp_path, ros_domain):
     with Launch(load("sim"), args, log=logs.append) as launch:
         _wait_path(tmp_path / "ttyDXL", launch)
         with background_node("test_sim_world", ros_domain) as node:
-            yield launch, SimCameraClient(node), args, logs
+            yield launch, SimCameraClient(node), args, logs, node
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_driver_turns_the_world_and_ground_truth_matches_the_image(sim_world):
-    launch, client, args, logs = sim_world
+    launch, client, args, logs, node = sim_world
     mesh = trimesh.load(sample_object_dir("bottle") / "mesh.obj", force="mesh")
     # Drive the servo once the camera has started: Blender's start-up takes both cores, and the emulated servo
     # (a process, not hardware) then missed 4 replies in a row once on CI.
     client.next_frame(0.0, timeout_s=120)
+    from test_node_parameters import expected_parameters
+
+    for name in ("sim_camera", "sim_turntable"):  # their parameters, as `ros2 param list` shows them
+        assert list_parameters(node, f"/n2d/{name}") == expected_parameters(f"{name}_node")
     with Turntable(TurntableConfig(port=args["port"], velocity_limit_rad_s=3.0, retries=8)) as table:
         observations = []
         for target in (0.0, math.pi / 2):
@@ -78,7 +83,7 @@ def test_driver_turns_the_world_and_ground_truth_matches_the_image(sim_world):
 
 @pytest.mark.timeout(300)
 def test_launch_stops_everything_when_one_node_dies(sim_world):
-    launch, _, args, _ = sim_world
+    launch, _, args, _, _ = sim_world
     launch.procs["sim_turntable"].send_signal(signal.SIGKILL)  # the servo process crashes
     assert launch.wait() == -signal.SIGKILL
     assert all(p.poll() is not None for p in launch.procs.values())
