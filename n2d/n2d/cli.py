@@ -286,7 +286,7 @@ def cmd_dataset(args) -> int:
     cancel = threading.Event()
     try:
         summary = generate_dataset(args.models, args.out, cfg, overwrite=args.overwrite,
-                                   progress=_progress_bar("dataset"), cancel=cancel)
+                                   progress=_progress_bar("dataset"), cancel=cancel, cluster=args.cluster)
     except KeyboardInterrupt:
         cancel.set()
         raise
@@ -491,6 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, help="frames to render (default: the config's, 100)")
     p.add_argument("--workers", type=int, help="render processes (default 0: automatic, the fastest on a CPU)")
     p.add_argument("--seed", type=int, help="seed of every random choice (default 0)")
+    p.add_argument("--cluster", metavar="ADDRESS", help="render on a Ray cluster: ray://HEAD:10001 (Ray Client), "
+                   "HEAD:6379 (from a node of the cluster), auto (the cluster this machine joined) or local (a "
+                   "one-machine cluster); the frames come back into OUT, --workers counts Ray worker slots")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset, or discard unfinished "
                    "work of another config")
     _add_config_options(p)
