@@ -72,10 +72,23 @@ def _import_ray() -> ModuleType:
     return ray
 
 
+def _stay_on_loopback() -> None:
+    """Keep a one-machine Ray on loopback. Ray swaps a loopback address for the machine's network address unless
+    it believes it runs without a cluster (its switch for Windows and macOS, read from the environment by the
+    processes it starts and as a constant in this one); n2d sets that switch for `local` and loopback clusters,
+    so no Ray server of theirs listens beyond this machine."""
+    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    from ray._private import ray_constants
+
+    ray_constants.ENABLE_RAY_CLUSTER = False
+
+
 @contextmanager
 def connect(address: str) -> Iterator[ModuleType]:
     """Connect this process to the Ray cluster at `address` and yield the `ray` module; disconnect afterwards
     (stopping a `local` cluster). A process already connected (a pipeline driving several stages) stays so."""
+    if address not in (LOCAL, AUTO):
+        check_reachable(address)  # before Ray's own retries, which take minutes
     ray = _import_ray()
     if ray.is_initialized():
         yield ray
@@ -83,14 +96,12 @@ def connect(address: str) -> Iterator[ModuleType]:
     kwargs: dict = {"log_to_driver": False, "logging_level": "warning"}
     tmp = None
     if address == LOCAL:
-        # This machine alone: every Ray server on loopback (Ray binds the detected address otherwise).
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        _stay_on_loopback()
         tmp = tempfile.mkdtemp(prefix="n2d_ray_", dir="/tmp" if os.path.isdir("/tmp") else None)
         kwargs |= {"include_dashboard": False, "_temp_dir": tmp}
     elif address != AUTO:
-        check_reachable(address)
         if _is_loopback(_host_port(address)[0]):
-            os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # a loopback cluster (tests)
+            _stay_on_loopback()  # a cluster of this machine's loopback (tests)
         kwargs["address"] = address
     else:
         kwargs["address"] = AUTO
