@@ -24,6 +24,7 @@ SMALL = ["frames=8", "camera.width=320", "camera.height=240", "camera.focal_px=3
 def dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("ddp") / "ds"
     generate_dataset([sample_object_dir("box")], out, load_config(DatasetConfig, overrides=SMALL))
+    (out / "models" / "box" / "mesh.obj").unlink()  # no refinement model after training: not what this tests (10 s)
     return out
 
 
@@ -58,7 +59,7 @@ def test_two_processes_match_one_and_resume(dataset, tmp_path):
     double, two = _run(dataset, tmp_path / "two", cfg, ddp=2)
     assert sorted(one) == sorted(two) == list(range(1, single["planned_steps"] + 1))
     for step in one:  # the same batches, the gradient averaged: only batch-norm statistics differ
-        assert two[step] == pytest.approx(one[step], rel=0.1), (step, one, two)
+        assert two[step] == pytest.approx(one[step], rel=0.02), (step, one, two)
     assert double["steps"] == single["steps"] and read_manifest(tmp_path / "two")["complete"]
     assert (tmp_path / "two" / "model.onnx").is_file()
 

@@ -316,10 +316,12 @@ def cmd_train(args) -> int:
     cancel = threading.Event()
     try:
         s = train(args.dataset, args.out, cfg, object_name=args.object, overwrite=args.overwrite,
-                  progress=_progress_bar("train"), cancel=cancel)
+                  progress=_progress_bar("train"), cancel=cancel, ddp=args.ddp)
     except KeyboardInterrupt:
         cancel.set()
         raise
+    if s is None:  # a rank other than 0 of a torchrun launch: rank 0 reports
+        return 0
     held = f", held-out loss {s['held_out_loss']:.5f}" if s["held_out_loss"] is not None else ""
     print(f"train: {s['object']} ({s['backbone']}, {s['parameters'] / 1e6:.2f} M parameters): {s['steps']} steps on "
           f"{s['train_frames']} frames in {s['train_seconds']:.0f} s on {s['device']}{held}")
@@ -517,6 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")
     p.add_argument("--minutes", type=float, help="train for this many minutes (the learning rate anneals over "
                    "them; the preset's epochs no longer stop it, an explicit --epochs still does), then export")
+    p.add_argument("--ddp", type=int, default=0, metavar="N", help="train data-parallel in N processes of this "
+                   "machine (torch.distributed: gloo on CPUs, NCCL on GPUs; the same batches and checkpoints). On "
+                   "several machines launch with torchrun instead")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model, or discard unfinished "
                    "training of another config")
     _add_config_options(p)
