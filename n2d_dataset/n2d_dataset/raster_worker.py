@@ -9,7 +9,6 @@ from (seed, frame), so any worker renders it the same way, and a resumed run wri
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -94,7 +93,4 @@ def frame_renderer(model_dirs: list[str], config: dict, threads: int) -> Iterato
 def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
                   cancel: threading.Event) -> dict:
     """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
-    cfg = from_dict(DatasetConfig, config)
-    threads = cfg.render.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count("raster"))
-    with frame_renderer(model_dirs, config, threads) as (render_one, device):
-        return writer.render_each(frames, lambda frame: render_one(root, frame), device, progress, cancel)
+    return writer.render_shard(frame_renderer, "raster", model_dirs, root, config, frames, progress, cancel)

@@ -8,7 +8,6 @@ randomness comes only from (seed, frame), so any worker renders it the same way.
 
 from __future__ import annotations
 
-import os
 import tempfile
 import threading
 import time
@@ -99,7 +98,4 @@ def frame_renderer(model_dirs: list[str], config: dict, threads: int) -> Iterato
 def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
                   cancel: threading.Event) -> dict:
     """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
-    cfg = from_dict(DatasetConfig, config)
-    threads = cfg.render.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count("cycles"))
-    with frame_renderer(model_dirs, config, threads) as (render_one, device):
-        return writer.render_each(frames, lambda frame: render_one(root, frame), device, progress, cancel)
+    return writer.render_shard(frame_renderer, "cycles", model_dirs, root, config, frames, progress, cancel)

@@ -158,8 +158,9 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     identity = _identity(cfg, name, [Path(d) for d in datasets])
     stage_cm = stage_output(out, "dope_model", overwrite=overwrite, config=identity) if ranks.main else nullcontext()
     with stage_cm as stage:
-        ckpt_path = Path(share(str(stage.path) if ranks.main else None, ranks)) / "checkpoint.pt"
-        state = load_checkpoint(ckpt_path) if ckpt_path.is_file() else None
+        ckpt_path = stage.path / "checkpoint.pt" if ranks.main else None
+        # rank 0's checkpoint on every rank: the others may run on machines without the output directory
+        state = share(load_checkpoint(ckpt_path) if ranks.main and ckpt_path.is_file() else None, ranks)
         torch.manual_seed(cfg.seed)
         fmt = memory_format(device)
         net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None and initial is None,
