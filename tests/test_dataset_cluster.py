@@ -153,7 +153,7 @@ def test_unreachable_cluster_is_named(tmp_path):
     t0 = time.monotonic()
     with pytest.raises(N2DError, match=f"cannot reach the Ray cluster at {address}"):
         generate_dataset(MODELS, out, small_config(), cluster=address)
-    assert time.monotonic() - t0 < 10 and not out.exists()
+    assert time.monotonic() - t0 < 10 and not out.exists() and not out.with_name("ds.partial").exists()
     with pytest.raises(N2DError, match="not HOST:PORT"):
         generate_dataset(MODELS, tmp_path / "ds2", small_config(), cluster="nowhere")
 

@@ -84,7 +84,10 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
     out = Path(out).absolute()
     t_start = time.perf_counter()
     job = _job_config(cfg) | {"models": [str(m.directory) for m in models]}
-    with stage_output(out, "dataset", overwrite=overwrite, config=job) as stage:
+    with ExitStack() as stack:
+        # the cluster first: an unreachable one leaves not even a partial directory
+        ray = stack.enter_context(connect(cluster)) if cluster else None
+        stage = stack.enter_context(stage_output(out, "dataset", overwrite=overwrite, config=job))
         root = stage.path
         todo = sorted(set(range(cfg.frames)) - writer.done_frames(root))
         done = cfg.frames - len(todo)
@@ -102,20 +105,17 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
                           "starting render workers", {"frames_done": done, "frames_total": cfg.frames}))
         photoreal = set(cfg.photoreal())
         work = {"model_dirs": [str(m.directory) for m in models], "root": str(root), "config": to_dict(cfg)}
-        with ExitStack() as stack:
-            if cluster:
+        # One engine at a time: a Cycles worker already uses every core.
+        for engine, frames in (("cycles", [f for f in todo if f in photoreal]),
+                               ("raster", [f for f in todo if f not in photoreal])):
+            if not frames:
+                continue
+            if ray is not None:
                 from n2d_dataset.cluster import render_on_cluster
 
-                ray = stack.enter_context(connect(cluster))
-            # One engine at a time: a Cycles worker already uses every core.
-            for engine, frames in (("cycles", [f for f in todo if f in photoreal]),
-                                   ("raster", [f for f in todo if f not in photoreal])):
-                if not frames:
-                    continue
-                if cluster:
-                    render_on_cluster(ray, work, engine, frames, cfg, report, cancel)
-                else:
-                    _render_local(work, engine, frames, cfg, report, cancel)
+                render_on_cluster(ray, work, engine, frames, cfg, report, cancel)
+            else:
+                _render_local(work, engine, frames, cfg, report, cancel)
         missing = sorted(set(range(cfg.frames)) - writer.done_frames(root))
         if missing:  # never publish a dataset with holes
             raise N2DError(f"{len(missing)} of {cfg.frames} frames are missing (first: {missing[0]})",
