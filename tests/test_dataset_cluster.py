@@ -186,3 +186,10 @@ def test_slots_follow_the_cluster():
     assert cluster.slots(nodes, small_config("workers=0"), "cycles") == (2, {"num_cpus": 2}, 2)
     gpu = [Node("a", 8.0, 2.0)]
     assert cluster.slots(gpu, small_config("workers=0"), "cycles") == (2, {"num_cpus": 1, "num_gpus": 1}, 1)
+
+
+def test_ray_is_imported_only_for_a_cluster():
+    code = ("import sys, n2d_dataset.generate, n2d_dope.train, n2d.cli; "
+            "assert 'ray' not in sys.modules, 'ray imported'; print('ok')")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "ok" in run.stdout, run.stderr[-2000:]
