@@ -151,6 +151,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     check_mix(info, train_frames, name, cfg.photoreal_mix)
     device = resolve_device(cfg.device)
     ranks = current(device)
+    progress = progress if ranks.main else no_progress  # rank 0 reports for all
     if device.type == "cuda" and ranks.world > 1:
         device = torch.device("cuda", ranks.local)
     if cfg.threads or ranks.world > 1:
