@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from collections import Counter, deque
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from contextlib import ExitStack
 from pathlib import Path
 from types import ModuleType
@@ -33,6 +34,9 @@ from n2d_common.progress import Progress
 from n2d_dataset import writer
 from n2d_dataset.config import DatasetConfig
 
+WRITE_THREADS = 4
+"""Frames the driver writes at once (each frame's files in turn, its record last): one writer, at tens of ms a frame
+with fsync, would cap a large cluster (docs/experiments.md#dataset-on-ray)."""
 FRAME_TRIES = 3
 """How often a frame is handed out again after the worker rendering it was lost, before the run stops."""
 STALL_S = 120.0
@@ -152,6 +156,15 @@ def render_on_cluster(ray: ModuleType, job: dict, engine: str, frames: list[int]
     pending: dict = {}  # ObjectRef -> (step: info | open | frame, actor, node info, frame)
     ready_actors, actors, spawned = [], [], 0
     last_event = time.monotonic()
+    pool, writing = ThreadPoolExecutor(WRITE_THREADS, thread_name_prefix="n2d-write"), {}  # Future -> (frame, node)
+
+    def written(block: bool) -> None:
+        """Report the frames whose files are on disk (waiting for one when `block`); raise a write's error."""
+        finished, _ = wait(list(writing), timeout=None if block else 0, return_when=FIRST_COMPLETED)
+        for future in finished:
+            frame, node = writing.pop(future)
+            future.result()
+            report(Progress(0.0, "rendering", message=f"frame {frame}", info={"frame": frame, "node": node}))
 
     def spawn() -> None:
         nonlocal spawned
@@ -173,6 +186,7 @@ def render_on_cluster(ray: ModuleType, job: dict, engine: str, frames: list[int]
         for _ in range(min(count, len(frames))):
             spawn()
         while todo or any(step == "frame" for step, *_ in pending.values()):
+            written(block=len(writing) >= 4 * WRITE_THREADS)
             if cancel.is_set():
                 raise Cancelled(f"cancelled with {len(writer.done_frames(root))} of {cfg.frames} frames done",
                                 "re-run the same command to resume")
@@ -217,11 +231,13 @@ def render_on_cluster(ray: ModuleType, job: dict, engine: str, frames: list[int]
             elif step == "open":
                 ready_actors.append((actor, node))
             else:
-                write_frame_files(root, value)
                 ready_actors.append((actor, node))
-                report(Progress(0.0, "rendering", message=f"frame {frame}",
-                                info={"frame": frame, "node": node["node"]}))
+                writing[pool.submit(write_frame_files, root, value)] = (frame, node["node"])
+        while writing:
+            written(block=True)
     except BaseException:
         stop_all(graceful=False)
         raise
+    finally:
+        pool.shutdown(wait=True)  # a frame being written is finished before the run stops
     stop_all(graceful=True)
