@@ -315,7 +315,7 @@ def cmd_dataset(args) -> int:
     cancel = threading.Event()
     try:
         summary = generate_dataset(args.models, args.out, cfg, overwrite=args.overwrite,
-                                   progress=_progress_bar("dataset"), cancel=cancel)
+                                   progress=_progress_bar("dataset"), cancel=cancel, cluster=args.cluster)
     except KeyboardInterrupt:
         cancel.set()
         raise
@@ -345,10 +345,12 @@ def cmd_train(args) -> int:
     cancel = threading.Event()
     try:
         s = train(args.dataset, args.out, cfg, object_name=args.object, overwrite=args.overwrite,
-                  progress=_progress_bar("train"), cancel=cancel)
+                  progress=_progress_bar("train"), cancel=cancel, ddp=args.ddp)
     except KeyboardInterrupt:
         cancel.set()
         raise
+    if s is None:  # a rank other than 0 of a torchrun launch: rank 0 reports
+        return 0
     held = f", held-out loss {s['held_out_loss']:.5f}" if s["held_out_loss"] is not None else ""
     print(f"train: {s['object']} ({s['backbone']}, {s['parameters'] / 1e6:.2f} M parameters): {s['steps']} steps on "
           f"{s['train_frames']} frames in {s['train_seconds']:.0f} s on {s['device']}{held}")
@@ -528,6 +530,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, help="frames to render (default: the config's, 100)")
     p.add_argument("--workers", type=int, help="render processes (default 0: automatic, the fastest on a CPU)")
     p.add_argument("--seed", type=int, help="seed of every random choice (default 0)")
+    p.add_argument("--cluster", metavar="ADDRESS", help="render on a Ray cluster: ray://HEAD:10001 (Ray Client), "
+                   "HEAD:6379 (from a node of the cluster), auto (the cluster this machine joined) or local (a "
+                   "one-machine cluster); the frames come back into OUT, --workers counts Ray worker slots")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset, or discard unfinished "
                    "work of another config")
     _add_config_options(p)
@@ -551,6 +556,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=int, help="passes over the training frames (default: the preset's)")
     p.add_argument("--minutes", type=float, help="train for this many minutes (the learning rate anneals over "
                    "them; the preset's epochs do not stop it, an explicit --epochs does), then export")
+    p.add_argument("--ddp", type=int, default=0, metavar="N", help="train data-parallel in N processes of this "
+                   "machine (torch.distributed: gloo on CPUs, NCCL on GPUs; the same batches and checkpoints). On "
+                   "several machines launch with torchrun instead")
     p.add_argument("--overwrite", action="store_true", help="replace an existing model, or discard unfinished "
                    "training of another config")
     _add_config_options(p)

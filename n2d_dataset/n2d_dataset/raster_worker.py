@@ -9,9 +9,10 @@ from (seed, frame), so any worker renders it the same way, and a resumed run wri
 
 from __future__ import annotations
 
-import os
 import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -80,12 +81,16 @@ def _render_frame(cfg: DatasetConfig, builder: RasterSceneBuilder, root: Path, f
                                  T_world_cam, g.index, g.depth)
 
 
+@contextmanager
+def frame_renderer(model_dirs: list[str], config: dict, threads: int) -> Iterator[tuple[Callable, str]]:
+    """Set up a rasterizer with `threads` CPU threads; yields (render_one(root, frame), device name)."""
+    cfg = from_dict(DatasetConfig, config)
+    torch.set_num_threads(threads)
+    builder = RasterSceneBuilder(load_models(model_dirs), cfg)
+    yield (lambda root, frame: _render_frame(cfg, builder, Path(root), frame)), "cpu (raster)"
+
+
 def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
                   cancel: threading.Event) -> dict:
     """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
-    cfg = from_dict(DatasetConfig, config)
-    cores = len(os.sched_getaffinity(0))
-    torch.set_num_threads(cfg.render.threads or max(1, cores // cfg.worker_count("raster")))
-    builder = RasterSceneBuilder(load_models(model_dirs), cfg)
-    return writer.render_each(frames, lambda frame: _render_frame(cfg, builder, Path(root), frame), "cpu (raster)",
-                              progress, cancel)
+    return writer.render_shard(frame_renderer, "raster", model_dirs, root, config, frames, progress, cancel)

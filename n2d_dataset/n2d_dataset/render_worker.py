@@ -8,10 +8,11 @@ randomness comes only from (seed, frame), so any worker renders it the same way.
 
 from __future__ import annotations
 
-import os
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import bpy
@@ -81,16 +82,20 @@ def _render_frame(cfg: DatasetConfig, builder: SceneBuilder, root: Path, frame: 
     writer.write_annotated_frame(root, cfg, frame, rgb, record, targets, T_world_cam, index, depth)
 
 
-def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
-                  cancel: threading.Event) -> dict:
-    """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
+@contextmanager
+def frame_renderer(model_dirs: list[str], config: dict, threads: int) -> Iterator[tuple[Callable, str]]:
+    """Load the models into Blender and set up Cycles with `threads` CPU threads; yields (render_one(root, frame),
+    the device Cycles renders on)."""
     cfg = from_dict(DatasetConfig, config)
     builder = SceneBuilder(load_models(model_dirs), cfg)
     shm = "/dev/shm" if Path("/dev/shm").is_dir() else None  # the EXRs never need to touch a disk
     with tempfile.TemporaryDirectory(prefix="n2d_dataset_", dir=shm) as tmp:
         r = cfg.render
-        threads = r.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count("cycles"))
         device = renderer.setup(Path(tmp) / "frame.exr", r.samples, r.denoiser, r.max_bounces, r.device, threads)
-        summary = writer.render_each(frames, lambda frame: _render_frame(cfg, builder, Path(root), frame), device,
-                                     progress, cancel)
-    return summary
+        yield (lambda root, frame: _render_frame(cfg, builder, Path(root), frame)), device
+
+
+def render_frames(model_dirs: list[str], root: str, config: dict, frames: list[int], progress: ProgressFn,
+                  cancel: threading.Event) -> dict:
+    """Render `frames` of the dataset being written in `root` (the stage's partial directory)."""
+    return writer.render_shard(frame_renderer, "cycles", model_dirs, root, config, frames, progress, cancel)

@@ -17,6 +17,7 @@ a record is re-rendered on resume. The records become the chunk JSON files at th
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -25,12 +26,14 @@ import cv2
 import numpy as np
 import trimesh
 
+from n2d_common.config import from_dict
 from n2d_common.contracts import atomic_write_bytes, atomic_write_json
 from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.process import rss_mb
 from n2d_common.progress import Progress
 from n2d_dataset.annotate import Annotation, annotate, bop_camera, bop_gt, dope_frame
+from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import Model
 
 DEPTH_SCALE = 0.1
@@ -110,6 +113,16 @@ def render_each(frames: list[int], render_one, device: str, progress, cancel) ->
         progress(Progress((n + 1) / len(frames), "rendering", message=f"frame {frame}",
                           info={"frame": frame, "seconds": time.perf_counter() - t0, "device": device}))
     return {"frames": len(frames), "device": device}
+
+
+def render_shard(frame_renderer, engine: str, model_dirs: list[str], root: str, config: dict, frames: list[int],
+                 progress, cancel) -> dict:
+    """A local worker's job: `frame_renderer` (a worker module's) set up with the worker's share of the cores, then
+    `render_each` over its frames."""
+    cfg = from_dict(DatasetConfig, config)
+    threads = cfg.render.threads or max(1, len(os.sched_getaffinity(0)) // cfg.worker_count(engine))
+    with frame_renderer(model_dirs, config, threads) as (render_one, device):
+        return render_each(frames, lambda frame: render_one(root, frame), device, progress, cancel)
 
 
 def done_frames(root: Path) -> set[int]:

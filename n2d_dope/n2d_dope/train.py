@@ -11,14 +11,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn.parallel import DistributedDataParallel
 
 from n2d_common.config import to_dict
 from n2d_common.contracts import atomic_write_json, open_stage, stage_output
@@ -27,6 +30,7 @@ from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_dope.config import TrainConfig
 from n2d_dope.data import DatasetInfo, DopeSamples, Frame, check_mix, epoch_order, instances, open_datasets
+from n2d_dope.distributed import ONE, Ranks, current, launch, shard, share
 from n2d_dope.export import export_onnx, quantize_int8
 from n2d_dope.network import DopeNet, parameter_count
 from n2d_dope.pose_refine import Refiner
@@ -81,21 +85,23 @@ def learning_rate(cfg: TrainConfig, done: float) -> float:
     return cfg.lr * (f + (1 - f) * 0.5 * (1 + math.cos(math.pi * min(1.0, done))))
 
 
-def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: int):
-    """Yield (index, stacked batch) from batch `start` on, loading the next batch in a thread meanwhile."""
+def _batches(samples: DopeSamples, order: np.ndarray, batch_size: int, start: int, ranks: Ranks = ONE):
+    """Yield (index, stacked batch, loss weight) from batch `start` on, loading the next batch in a thread meanwhile;
+    with several ranks, this rank's share of each batch and the weight of its loss (`distributed.shard`)."""
     def load(b: int):
         # numpy only in this thread: a torch op here would start a second OpenMP team that fights the
         # training step's for the cores (measured: 3x slower steps on 2 cores)
-        items = [samples[int(i)] for i in order[b * batch_size:(b + 1) * batch_size]]
-        return tuple(np.stack([x.numpy() for x in t]) for t in zip(*items))
+        mine, weight = shard(list(order[b * batch_size:(b + 1) * batch_size]), ranks)
+        items = [samples[int(i)] for i in mine]
+        return tuple(np.stack([x.numpy() for x in t]) for t in zip(*items)), weight
 
     count = math.ceil(len(order) / batch_size)
     with ThreadPoolExecutor(1) as pool:
         pending = pool.submit(load, start) if start < count else None
         for b in range(start, count):
-            batch = pending.result()
+            batch, weight = pending.result()
             pending = pool.submit(load, b + 1) if b + 1 < count else None
-            yield b, tuple(torch.from_numpy(x) for x in batch)
+            yield b, tuple(torch.from_numpy(x) for x in batch), weight
 
 
 def memory_format(device: torch.device) -> torch.memory_format:
@@ -125,13 +131,18 @@ def initial_weights(cfg: TrainConfig) -> dict | None:
 
 def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: TrainConfig | None = None, *,
           object_name: str | None = None, overwrite: bool = False, progress: ProgressFn = no_progress,
-          cancel: threading.Event | None = None) -> dict:
+          cancel: threading.Event | None = None, ddp: int = 0) -> dict | None:
     """Train DOPE for `object_name` on the dataset (or the frames of several, rendered with the same camera) and
-    write the DOPE model directory `out`; returns the summary.
+    write the DOPE model directory `out`; returns the summary (None on ranks other than 0).
 
-    Raises Cancelled (after saving the checkpoint) when `cancel` is set; the same call resumes.
+    Raises Cancelled (after saving the checkpoint) when `cancel` is set; the same call resumes. `ddp` > 1 trains
+    data-parallel in that many processes of this machine; under torchrun (or in a process group set up by Ray
+    Train) every rank calls `train` and takes its share (`distributed.py`).
     """
     cfg = cfg or TrainConfig()
+    if ddp > 1:
+        return launch(ddp, resolve_device(cfg.device), train, (dataset_dir, out, cfg),
+                      {"object_name": object_name, "overwrite": overwrite}, {"progress": progress, "cancel": cancel})
     datasets = [dataset_dir] if isinstance(dataset_dir, (str, Path)) else list(dataset_dir)
     info = open_datasets(datasets)
     initial = initial_weights(cfg)
@@ -139,18 +150,25 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     train_frames, held_frames = split_frames(info, name, cfg)
     check_mix(info, train_frames, name, cfg.photoreal_mix)
     device = resolve_device(cfg.device)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+    ranks = current(device)
+    progress = progress if ranks.main else no_progress  # rank 0 reports for all
+    if device.type == "cuda" and ranks.world > 1:
+        device = torch.device("cuda", ranks.local)
+    if cfg.threads or ranks.world > 1:
+        torch.set_num_threads(cfg.threads or max(1, len(os.sched_getaffinity(0)) // ranks.world))
     identity = _identity(cfg, name, [Path(d) for d in datasets])
-    with stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage:
-        ckpt_path = stage.path / "checkpoint.pt"
-        state = load_checkpoint(ckpt_path) if ckpt_path.is_file() else None
+    stage_cm = stage_output(out, "dope_model", overwrite=overwrite, config=identity) if ranks.main else nullcontext()
+    with stage_cm as stage:
+        ckpt_path = stage.path / "checkpoint.pt" if ranks.main else None
+        # rank 0's checkpoint on every rank: the others may run on machines without the output directory
+        state = share(load_checkpoint(ckpt_path) if ranks.main and ckpt_path.is_file() else None, ranks)
         torch.manual_seed(cfg.seed)
         fmt = memory_format(device)
         net = DopeNet(cfg.backbone, cfg.stages, imagenet_weights=state is None and initial is None,
                       frozen_blocks=cfg.frozen_blocks).to(device, memory_format=fmt)
         if state is None and initial is not None:
             net.load_state_dict(initial)
+        model = DistributedDataParallel(net) if ranks.world > 1 else net  # DDP averages the ranks' gradients
         opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=cfg.lr)
         steps_per_epoch = math.ceil(len(train_frames) / cfg.batch_size)
         total = cfg.epochs * steps_per_epoch
@@ -161,6 +179,8 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             pos = state["position"]
 
         def save() -> None:
+            if not ranks.main:
+                return
             atomic_torch_save({"model": net.state_dict(), "optimizer": opt.state_dict(),
                                "position": pos, "identity": identity}, ckpt_path)
 
@@ -179,25 +199,26 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
             samples.set_epoch(epoch)
             order = epoch_order(train_frames, cfg.photoreal_mix, np.random.default_rng([cfg.seed, epoch]))
             epoch_losses = []
-            for _, (images, beliefs, affinities) in _batches(samples, order, cfg.batch_size, first):
+            for _, (images, beliefs, affinities), weight in _batches(samples, order, cfg.batch_size, first, ranks):
                 for group in opt.param_groups:
                     group["lr"] = learning_rate(cfg, done(pos))
-                loss = dope_loss(net(images.to(device, memory_format=fmt)), beliefs.to(device), affinities.to(device),
-                                 cfg.peak_weight)
+                loss = dope_loss(model(images.to(device, memory_format=fmt)), beliefs.to(device),
+                                 affinities.to(device), cfg.peak_weight)
                 if not torch.isfinite(loss):
                     raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
                                    "lower --set lr=..., or re-run with --overwrite")
                 opt.zero_grad(set_to_none=True)
-                loss.backward()
+                (loss * weight if ranks.world > 1 else loss).backward()
                 opt.step()
                 pos["step"] += 1
                 pos["elapsed_s"] = time.monotonic() - t_start
-                epoch_losses.append(loss.item())
+                value = _agree(loss.item() * weight, pos, ranks)
+                epoch_losses.append(value)
                 fraction = done(pos)
                 progress(Progress(0.95 * fraction, "training", eta(fraction),
-                                  f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {loss.item():.5f}",
-                                  {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": loss.item()}))
-                if cancel is not None and cancel.is_set():
+                                  f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {value:.5f}",
+                                  {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": value}))
+                if _rank0_says(cancel is not None and cancel.is_set(), ranks):
                     save()
                     raise Cancelled(f"training cancelled at step {pos['step']}/{total}",
                                     "re-run the same command to resume")
@@ -209,6 +230,8 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
                     last_save = time.monotonic()
             pos["losses"].append(float(np.mean(epoch_losses)) if epoch_losses else None)
             save()
+        if not ranks.main:
+            return None
         net.eval().to(memory_format=torch.contiguous_format)
         summary = _finish(stage.path, net, info, name, train_frames, held_frames, cfg, pos, total, device, progress)
         summary["parameters"] = parameter_count(net)
@@ -219,6 +242,26 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         stage.finish(config=identity, inputs=inputs, extra={"object": name,
                                                                                   "backbone": cfg.backbone})
     return summary
+
+
+def _agree(weighted_loss: float, pos: dict, ranks: Ranks) -> float:
+    """After a step, every rank's view of it: the batch's loss (the ranks' weighted losses averaged) and rank 0's
+    elapsed time (so the learning rate and a time limit agree on every rank)."""
+    if ranks.world == 1:
+        return weighted_loss
+    stats = torch.tensor([weighted_loss, pos["elapsed_s"] if ranks.main else 0.0], dtype=torch.float64)
+    torch.distributed.all_reduce(stats)
+    pos["elapsed_s"] = float(stats[1])
+    return float(stats[0]) / ranks.world
+
+
+def _rank0_says(flag: bool, ranks: Ranks) -> bool:
+    """Rank 0's `flag` (its cancel) on every rank, so all stop at the same step."""
+    if ranks.world == 1:
+        return flag
+    box = torch.tensor([float(flag and ranks.main)])
+    torch.distributed.all_reduce(box)
+    return bool(box[0])
 
 
 def symmetric_targets(info: DatasetInfo, name: str, cfg: TrainConfig) -> tuple[np.ndarray, list] | None:
@@ -236,7 +279,7 @@ def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: st
     samples = DopeSamples(frames, name, cfg, augment=False, symmetric=symmetric_targets(info, name, cfg))
     losses = []
     with torch.no_grad():
-        for _, (images, beliefs, affinities) in _batches(samples, np.arange(len(samples)), cfg.batch_size, 0):
+        for _, (images, beliefs, affinities), _ in _batches(samples, np.arange(len(samples)), cfg.batch_size, 0):
             losses.append(dope_loss(net(images.to(device)), beliefs.to(device), affinities.to(device)).item())
     return float(np.mean(losses))
 
