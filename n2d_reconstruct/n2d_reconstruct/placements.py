@@ -328,7 +328,7 @@ def register(views: Views, plate_radius_m: float, cfg: PlacementsConfig, hull_cf
 def fuse(data: SessionData, registration: Registration) -> SessionData:
     """The session with every view posed in the first placement's turntable frame and one plate per placement."""
     def moved(views: Views) -> Views:
-        T = np.stack([registration.T_first[p] for p in views.placement]) @ views.T_turntable_cam
+        T = np.asarray(registration.T_first)[views.placement] @ views.T_turntable_cam
         return Views(views.rgb, views.masks, views.K, T, views.names, views.truth, views.placement)
 
     return SessionData(data.directory, moved(data.train), moved(data.heldout), data.plate_radius_m,
