@@ -45,8 +45,9 @@ class PlacementsConfig:
     """Points inside each hull scoring the overlap of the global search."""
     starts: int = 6
     """Best distinct rotations of the global search refined by the hulls' soft overlap."""
-    refined: int = 2
-    """Of those, the ones best covering the masks refined by the mask rays."""
+    refined: int = 4
+    """Of those, the ones best covering the masks refined by the mask rays; where several distinct ones fit the
+    masks alike (a shape symmetric under a turn), the photos' agreement on the fused surface decides."""
     distinct_deg: float = 15.0
     """Rotations closer than this count as one start."""
     rays_per_view: int = 150
@@ -263,6 +264,48 @@ def _coverage(rays: _Rays, other: _Grid, T_other_own: np.ndarray, tol: float, vi
     return np.where(total > 0, hits / np.maximum(total, 1), 1.0)
 
 
+def _colours(views: Views, T_first: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple:
+    """Per point, the grey level of the views facing it (weighted by how squarely), and the weight; the views'
+    poses mapped by T_first into the points' frame. Occlusion is not modelled (the score only breaks ties)."""
+    grey, weight = np.zeros(len(points)), np.zeros(len(points))
+    poses = T_first @ views.T_turntable_cam
+    moved = Views(views.rgb, views.masks, views.K, poses, views.names)
+    for v in range(len(views)):
+        eye = poses[v, :3, 3] - points
+        facing = np.einsum("ij,ij->i", normals, eye / np.linalg.norm(eye, axis=1, keepdims=True))
+        uv, _ = moved.project(v, points)
+        px, ok = moved.pixels(uv)
+        w = np.where(ok, np.clip(facing - 0.5, 0, None), 0.0)
+        px = np.where(ok[:, None], px, 0)
+        ok &= views.masks[v][px[:, 1], px[:, 0]]
+        w = np.where(ok, w, 0.0)
+        grey += w * views.rgb[v][px[:, 1], px[:, 0]].mean(1)
+        weight += w
+    return grey / np.maximum(weight, 1e-9), weight
+
+
+def _photo_difference(first: Views, other: Views, g1: _Grid, g2: _Grid, T: np.ndarray, rng) -> float:
+    """1 - the correlation of the grey levels the two placements' photos give the fused hull's surface under T."""
+    idx = np.argwhere(np.abs(g1.values) < 2 * g1.voxel)
+    nodes = g1.origin + g1.voxel * idx
+    nodes = nodes[rng.choice(len(nodes), min(len(nodes), 40000), replace=False)]
+    T_inv = inv_T(T)
+
+    def fused(p):
+        return np.maximum(g1(p), g2(transform_points(T_inv, p)))
+
+    points = nodes[np.abs(fused(nodes)) < 0.5 * g1.voxel]
+    h = 0.5 * g1.voxel
+    normals = np.stack([fused(points + h * e) - fused(points - h * e) for e in np.eye(3)], 1)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    a, wa = _colours(first, np.eye(4), points, normals)
+    b, wb = _colours(other, T, points, normals)
+    both = (wa > 0.2) & (wb > 0.2)
+    if both.sum() < 50:
+        return 1.0
+    return float(1 - np.corrcoef(a[both], b[both])[0, 1])
+
+
 def register(views: Views, plate_radius_m: float, cfg: PlacementsConfig, hull_cfg: HullConfig,
              locate_voxel_m: float = 0.004, seed: int = 0) -> Registration:
     """Each placement's turntable frame in the first's, from the masks alone; raises ContractError (naming the
@@ -290,14 +333,22 @@ def register(views: Views, plate_radius_m: float, cfg: PlacementsConfig, hull_cf
                                     _coverage(rays2, g1, T, tol, len(other))])
             starts.append((float(cover.mean()), overlap, T))
         timings["overlap"] = time.monotonic() - start - timings["search"]
-        best = None
+        refined = []
         for _, overlap, T in sorted(starts, key=lambda s: -s[0])[:cfg.refined]:
             T, cost = _refine_rays(rays1, rays2, g1, g2, T, 0.5 * views.pixel_m)
             cover = np.concatenate([_coverage(rays1, g2, inv_T(T), tol, len(first)),
                                     _coverage(rays2, g1, T, tol, len(other))])
-            if best is None or cover.mean() > best[2].mean() + 1e-3 or (
-                    abs(cover.mean() - best[2].mean()) <= 1e-3 and cost < best[1]):
-                best = (T, cost, cover, overlap)
+            refined.append((T, cost, cover, overlap))
+        best = max(refined, key=lambda r: (round(float(r[2].mean()), 3), -r[1]))
+        # Shapes symmetric under a turn (a box) fit the masks as well in each symmetric pose: the photos decide.
+        fitting: list = []
+        for r in sorted((r for r in refined if r[2].mean() >= best[2].mean() - 0.005), key=lambda r: r[1]):
+            if all(_angle_deg(r[0][:3, :3], q[0][:3, :3]) > cfg.distinct_deg for q in fitting):
+                fitting.append(r)
+        photo = None
+        if len(fitting) > 1:
+            photo = [_photo_difference(first, other, g1, g2, r[0], rng) for r in fitting]
+            best = fitting[int(np.argmin(photo))]
         timings["rays"] = time.monotonic() - start - timings["search"] - timings["overlap"]
         T, cost, cover, overlap = best
         names = first.names + other.names
@@ -305,6 +356,8 @@ def register(views: Views, plate_radius_m: float, cfg: PlacementsConfig, hull_cf
         entry = {"placement": k, "T_first_placement": np.round(T, 9).tolist(), "turned_deg": round(turn, 2),
                  "hull_overlap": round(overlap, 4), "ray_cost": round(cost, 4),
                  "min_view_coverage": round(float(cover.min()), 4), "mean_view_coverage": round(float(cover.mean()), 4),
+                 "fit_by_shape": max(1, len(fitting)),
+                 "photo_difference": None if photo is None else [round(float(x), 4) for x in photo],
                  "timings_s": {k: round(v, 2) for k, v in timings.items()}}
         report["registered"].append(entry)
         bad = [(names[i], cover[i]) for i in np.argsort(cover) if cover[i] < cfg.min_view_coverage]
