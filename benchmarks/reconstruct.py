@@ -15,6 +15,15 @@ FLIP of held-out views (every 8th, over the object mask) for the textured mesh a
 radiance field; an `--exact` session also keeps each view's noise-free render, and the image goals are
 judged against it (against the noisy photo even a perfect model is capped: that row is printed too).
 One table for all methods.
+
+    python benchmarks/reconstruct.py --placements 2 [--objects mug,spray,bracket] [--views 24] [--size 320x240]
+
+Two placements: per suite object, a session rendered with exact poses and masks, swept standing and again
+turned over (`n2d_sim.session.SECOND_PLACEMENT_DEG`), is registered and fused by the fast path; printed per
+object: the registration error against the simulator's truth (degrees, mm), the fused model's Chamfer to the
+whole true mesh (underside included) as a share of the diameter, the underside's own Chamfer (the true surface
+within 10 % of the height of the plate), watertightness, and the underside Chamfer of a one-placement model of the
+same first sweep, for contrast.
 """
 
 from __future__ import annotations
@@ -26,11 +35,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
-from n2d_sim.session import CONVERGED_SAMPLES, render_session
+from n2d_sim.session import CONVERGED_SAMPLES, render_session, small_world, turned
+from n2d_sim.suite import suite_object_dir
 from n2d_sim.world import SimWorldConfig
 from table import print_table
 
@@ -107,6 +119,60 @@ def _image_scores(heldout: dict, key: str) -> str:
     return f"{heldout[f'{key}_psnr_db']:.2f} dB, {heldout[f'{key}_ssim']:.4f}, {heldout[f'{key}_flip']:.4f}"
 
 
+PLACEMENT_GOALS = {"deg": 0.5, "mm": 1.0, "chamfer_pct": 0.5}
+"""Two placements (issue 43): registration within 0.5 degrees and 1 mm, fused Chamfer <= 0.5 % of the diameter."""
+
+
+def _registration_error(T: list, truth) -> tuple[float, float]:
+    E = np.linalg.inv(truth.T_first_placement(1)) @ np.asarray(T)
+    return (float(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1)))),
+            1000 * float(np.linalg.norm(E[:3, 3])))
+
+
+def _placements(args, tmp: Path) -> None:
+    """The two-placement benchmark: per object, registration error, fused and underside Chamfer, one-placement
+    contrast."""
+    width, height = (int(x) for x in args.size.split("x"))
+    rows = []
+    for name in args.objects.split(","):
+        model_dir = suite_object_dir(name)
+        world = replace(small_world(str(model_dir), width, height), samples=args.samples, background_samples=16)
+        results = {}
+        for placements in (2, 1):
+            session = tmp / f"{name}_{placements}"
+            t0 = time.perf_counter()
+            truth = render_session(session, world, args.views, placements=[turned(world)] if placements == 2 else ())
+            render_s = time.perf_counter() - t0
+            cfg = ReconstructConfig(object_name=name)
+            t0 = time.perf_counter()
+            report = reconstruct(session, (args.out or tmp) / f"model_{name}_{placements}", cfg,
+                                 ground_truth=model_dir, overwrite=True)
+            results[placements] = (report, time.perf_counter() - t0, render_s, truth)
+        report, wall_s, render_s, truth = results[2]
+        g, entry = report["geometry"], report["placements"]["registered"][0]
+        deg, mm = _registration_error(entry["T_first_placement"], truth)
+        rows.append((name, "registration error", f"{deg:.3f} deg, {mm:.3f} mm",
+                     f"<= {PLACEMENT_GOALS['deg']} deg, {PLACEMENT_GOALS['mm']} mm",
+                     _met(deg <= PLACEMENT_GOALS["deg"] and mm <= PLACEMENT_GOALS["mm"])))
+        rows.append((name, "  turned, view coverage (min)", f"{entry['turned_deg']:.1f} deg, "
+                     f"{entry['min_view_coverage']:.3f}", "", ""))
+        rows.append((name, "fused Chamfer (whole mesh)", f"{g['chamfer_mm']:.3f} mm = {g['chamfer_pct_diameter']:.2f} %"
+                     " of diameter", f"<= {PLACEMENT_GOALS['chamfer_pct']} %",
+                     _met(g["chamfer_pct_diameter"] <= PLACEMENT_GOALS["chamfer_pct"])))
+        one = results[1][0]["geometry"]
+        rows.append((name, "underside Chamfer: fused / one placement",
+                     f"{g['underside_chamfer_mm']:.3f} / {one['underside_chamfer_mm']:.3f} mm", "", ""))
+        rows.append((name, "one-placement Chamfer (whole mesh)",
+                     f"{one['chamfer_mm']:.3f} mm = {one['chamfer_pct_diameter']:.2f} % of diameter", "", ""))
+        closed = report["model"]["watertight"]
+        rows.append((name, "watertight", _met(closed), "yes", _met(closed)))
+        rows.append((name, "time: render, reconstruct (registration)",
+                     f"{render_s:.0f} s, {wall_s:.0f} s ({report['timings_s']['load']:.0f} s)", "", ""))
+    print_table(f"Two-placement reconstruction benchmark (fast path; {args.views} views per placement, {args.size}, "
+                f"exact poses and masks, {args.samples} samples; this machine)", rows,
+                ("object", "metric", "value", "goal", "met"))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--session", type=Path, help="an existing capture session of a sample object")
@@ -116,7 +182,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--methods", default="fast", help="comma-separated methods to run")
     parser.add_argument("--neus-preset", default="cpu", choices=sorted(PRESETS), help="NeuS config preset")
     parser.add_argument("--out", type=Path, help="keep the models here (default: a temporary directory)")
+    parser.add_argument("--placements", type=int, default=1, choices=(1, 2),
+                        help="2: the two-placement benchmark over --objects")
+    parser.add_argument("--objects", default="mug,spray,bracket", help="suite objects of the two-placement benchmark")
+    parser.add_argument("--size", default="320x240", help="image size of the two-placement sessions")
+    parser.add_argument("--samples", type=int, default=16, help="samples per pixel of the two-placement sessions")
     args = parser.parse_args(argv)
+    if args.placements == 2:
+        with tempfile.TemporaryDirectory(prefix="n2d-bench-placements-") as tmp:
+            _placements(args, Path(tmp))
+        return
     with tempfile.TemporaryDirectory(prefix="n2d-bench-reconstruct-") as tmp:
         session, described = _session(args, Path(tmp))
         out_root = args.out or Path(tmp)

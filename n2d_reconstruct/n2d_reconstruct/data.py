@@ -41,6 +41,8 @@ class Views:
     """Image file of each view, relative to the session directory."""
     truth: np.ndarray | None = None
     """N x H x W x 3 uint8 noise-free images of the same views (simulated sessions only), else None."""
+    placement: np.ndarray | None = None
+    """N placement indices (`n2d_placement` in transforms.json); None: all views of one placement."""
 
     def __len__(self) -> int:
         return len(self.names)
@@ -69,12 +71,24 @@ class Views:
         px = np.rint(uv).astype(np.int64)
         return px, (px >= 0).all(1) & (px[:, 0] < self.width) & (px[:, 1] < self.height)
 
+    @property
+    def placements(self) -> int:
+        """How many placements the views come from."""
+        return 1 if self.placement is None or not len(self) else int(self.placement.max()) + 1
+
     def subset(self, index) -> Views:
         """The views at `index` (a list of ints or a boolean array)."""
         index = np.asarray(index)
         return Views(self.rgb[index], self.masks[index], self.K, self.T_turntable_cam[index],
                      [self.names[i] for i in np.arange(len(self))[index]],
-                     None if self.truth is None else self.truth[index])
+                     None if self.truth is None else self.truth[index],
+                     None if self.placement is None else self.placement[index])
+
+    def of_placement(self, placement: int) -> Views:
+        """The views of one placement (all of them for placement 0 of a one-placement session)."""
+        if self.placement is None:
+            return self if placement == 0 else self.subset(np.zeros(len(self), dtype=bool))
+        return self.subset(self.placement == placement)
 
 
 @dataclass
@@ -86,6 +100,11 @@ class SessionData:
     heldout: Views
     plate_radius_m: float
     """Radius of the turntable plate: the object stands inside this circle."""
+    plates: np.ndarray | None = None
+    """P x 4 plate planes (n, d) of a fused session of several placements, first placement's frame (the object
+    stands at n . p + d >= 0 on each); None: the one turntable plate, z >= 0."""
+    registration: dict | None = None
+    """How the placements were registered (several placements only)."""
 
 
 def load_session(directory: str | Path, *, holdout_every: int = 8, min_views: int = 8) -> SessionData:
@@ -124,7 +143,8 @@ def load_session(directory: str | Path, *, holdout_every: int = 8, min_views: in
     if all(v.truth is not None for v in session.views):
         truth = _undistort(session.K, session.dist, np.stack([read_png(v.truth) for v in session.views]), masks)[1]
     names = [str(v.image.relative_to(directory)) for v in session.views]
-    views = Views(rgb, masks, K, np.stack(poses), names, truth)
+    placement = np.array([v.placement for v in session.views]) if session.placements > 1 else None
+    views = Views(rgb, masks, K, np.stack(poses), names, truth, placement)
     heldout = np.zeros(len(views), dtype=bool)
     if holdout_every > 0:
         heldout[holdout_every // 2::holdout_every] = True

@@ -57,9 +57,13 @@ class HullConfig:
 
 
 class VisualHull:
-    """Signed distance (metres, negative inside) to the visual hull of `views` above the plate."""
+    """Signed distance (metres, negative inside) to the visual hull of `views` above the plate.
 
-    def __init__(self, views: Views, cfg: HullConfig):
+    `plates`: P x 4 planes (unit normal n, offset d) above which the object stands, n . p + d >= clearance; default
+    the turntable plate, z >= clearance. A session of several placements has one plate per placement, each in the
+    first placement's frame: each cuts away only what lies below its own plate."""
+
+    def __init__(self, views: Views, cfg: HullConfig, plates: np.ndarray | None = None):
         if cfg.forgive_views >= len(views):
             raise ValueError(f"forgive_views ({cfg.forgive_views}) must be smaller than the number of views "
                              f"({len(views)})")
@@ -72,6 +76,8 @@ class VisualHull:
         self.dist = torch.as_tensor(np.stack([signed_distance_px(m) for m in views.masks]))[:, None]
         self.pixel_m = views.pixel_m
         """The size of a pixel at the turntable centre, metres."""
+        self.plates = torch.as_tensor(np.array([[0.0, 0.0, 1.0, 0.0]]) if plates is None else plates,
+                                      dtype=torch.float64)
 
     def __call__(self, points: np.ndarray, chunk: int = 1 << 17, forgive_views: int | None = None) -> np.ndarray:
         """N x 3 turntable-frame points -> N signed distances, metres (negative inside); `forgive_views`
@@ -104,7 +110,7 @@ class VisualHull:
         d = torch.where(outside, torch.full_like(d, OUTSIDE_IMAGE_PX), d.double())
         metric = d * z / self.K[0, 0]
         inside = metric.kthvalue(k + 1, dim=0).values if k else metric.min(dim=0).values
-        above = p[:, 2] - self.cfg.plate_clearance_m
+        above = (p @ self.plates[:, :3].T + self.plates[:, 3]).min(dim=1).values - self.cfg.plate_clearance_m
         return -torch.minimum(inside, above)
 
 

@@ -86,7 +86,8 @@ def fscore(points_a: np.ndarray, points_b: np.ndarray, threshold: float) -> dict
 
 
 def mesh_distances(vertices_a: np.ndarray, faces_a: np.ndarray, vertices_b: np.ndarray, faces_b: np.ndarray,
-                   n: int = 100_000, threshold: float = FSCORE_THRESHOLD, seed: int = 0) -> dict:
+                   n: int = 100_000, threshold: float = FSCORE_THRESHOLD, seed: int = 0,
+                   below_z: float | None = None) -> dict:
     """Chamfer distance and F-score between two meshes, a the reconstruction, b the ground truth.
 
     n points are sampled on each surface and measured against the other surface, not its samples: each
@@ -97,11 +98,15 @@ def mesh_distances(vertices_a: np.ndarray, faces_a: np.ndarray, vertices_b: np.n
     0.5 sqrt(area / n)) to every distance; it exceeds the exact distance only where the nearest face is
     not a candidate (a mesh against itself, n = 20k: exact to 1e-16 m for a sphere of 1280 or 20k faces
     and a box; for a 64-sided cylinder, whose caps are fans of slivers, mean 1e-7 m, at most 0.7 mm).
+    `below_z`: only the samples of either surface at or below this height are measured (the underside).
     Returns the keys of `chamfer` and `fscore` (metres).
     """
     rng = np.random.default_rng(seed)
     points_a, face_a = sample_surface_faces(vertices_a, faces_a, n, rng)
     points_b, face_b = sample_surface_faces(vertices_b, faces_b, n, rng)
+    if below_z is not None:
+        a, b = points_a[:, 2] <= below_z, points_b[:, 2] <= below_z
+        points_a, face_a, points_b, face_b = points_a[a], face_a[a], points_b[b], face_b[b]
     a_to_b = _surface_distance(points_a, np.asarray(vertices_b, float)[faces_b], points_b, face_b)
     b_to_a = _surface_distance(points_b, np.asarray(vertices_a, float)[faces_a], points_a, face_a)
     return _chamfer(a_to_b, b_to_a) | _fscore(a_to_b, b_to_a, threshold)

@@ -34,6 +34,7 @@ from n2d_reconstruct.fair import FairConfig, fair_plain
 from n2d_reconstruct.hull import HullConfig, VisualHull, pull_inside, search_box
 from n2d_reconstruct.mesh import MeshConfig, clean, extract_mesh, locate
 from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
+from n2d_reconstruct.placements import PlacementsConfig, fuse, register
 from n2d_reconstruct.planes import PlanesConfig, flatten_planes
 from n2d_reconstruct.refine import RefineConfig, refine_surface
 from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
@@ -70,6 +71,8 @@ class ReconstructConfig:
     """Distance under which a point counts as correct in the F-score against a ground truth, metres."""
     hull: HullConfig = field(default_factory=HullConfig)
     """Visual hull."""
+    placements: PlacementsConfig = field(default_factory=PlacementsConfig)
+    """Registration of the placements of a session where the object was turned over and swept again."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     """Marching cubes and clean-up."""
     refine: RefineConfig = field(default_factory=RefineConfig)
@@ -124,13 +127,20 @@ class _Phases:
 
 
 def _load(session_dir, cfg: ReconstructConfig, progress: ProgressFn):
-    return load_session(session_dir, holdout_every=cfg.holdout_every, min_views=cfg.min_views)
+    """The session; one of several placements registered (refused when its views disagree) and fused into the
+    first placement's frame."""
+    data = load_session(session_dir, holdout_every=cfg.holdout_every, min_views=cfg.min_views)
+    if data.train.placements < 2:
+        return data
+    progress(Progress(0.5, "load", message=f"registering {data.train.placements} placements"))
+    registration = register(data.train, data.plate_radius_m, cfg.placements, cfg.hull, cfg.mesh.locate_voxel_m)
+    return fuse(data, registration)
 
 
 def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: ProgressFn):
     """The visual hull, the SDF to mesh (the forgiving hull on the fast path) and the NeuS field (None on the fast
     path)."""
-    hull = VisualHull(data.train, cfg.hull)
+    hull = VisualHull(data.train, cfg.hull, data.plates)
     if cfg.method == "fast":
         return hull, _forgiving(hull, cfg.hull), None
     box = locate(hull, search_box(data.plate_radius_m, cfg.hull), cfg.mesh.locate_voxel_m)
@@ -226,6 +236,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         info = phases.run("export", lambda progress: write_model(writer.path, model, cfg.object_name,
                                                                  to_models_info(symmetries)))
         report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
+        report["placements"] = data.registration
         report["refine"] = refined
         report["fair"] = faired
         report["hull"] = pulled
@@ -240,6 +251,7 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         atomic_write_json(writer.path / "report.json", report)
         writer.finish(config=to_dict(cfg), inputs={"session": str(session_dir.absolute())},
                       extra={"object": cfg.object_name, "method": cfg.method,
+                             "placements": data.train.placements,
                              "T_turntable_obj": np.round(T_turntable_obj, 9).tolist(),
                              "frame": "object frame at the bounding-box centre, axes of the session's turntable "
                                       "frame (Z up); T_turntable_obj maps it into the turntable frame, metres"})

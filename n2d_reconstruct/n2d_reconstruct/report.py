@@ -77,14 +77,24 @@ def _scores(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -> dict[
             "flip": flip(reference, image, mask)}
 
 
+UNDERSIDE_FRACTION = 0.1
+"""The underside, measured on its own: the surface within this fraction of the true height of the plate."""
+
+
 def geometry_metrics(mesh: trimesh.Trimesh, truth: trimesh.Trimesh, threshold_m: float) -> dict:
-    """Chamfer, F-score and bounding-box size error of `mesh` against `truth` (both in the turntable frame)."""
+    """Chamfer, F-score and bounding-box size error of `mesh` against `truth` (both in the turntable frame), and
+    the Chamfer of the underside alone (what a one-placement capture never sees)."""
     d = mesh_distances(mesh.vertices, mesh.faces, truth.vertices, truth.faces, threshold=threshold_m)
+    lo, hi = truth.vertices[:, 2].min(), truth.vertices[:, 2].max()
+    under = mesh_distances(mesh.vertices, mesh.faces, truth.vertices, truth.faces, n=50_000, threshold=threshold_m,
+                           below_z=lo + UNDERSIDE_FRACTION * (hi - lo))
     size, true_size = np.ptp(mesh.vertices, axis=0), np.ptp(truth.vertices, axis=0)
     return {"chamfer_mm": round(1000 * d["chamfer"], 3),
             "chamfer_pct_diameter": round(100 * d["chamfer"] / diameter(truth.vertices), 3),
             "accuracy_mm": round(1000 * d["a_to_b"], 3), "completeness_mm": round(1000 * d["b_to_a"], 3),
             "fscore": round(d["fscore"], 4), "fscore_threshold_mm": 1000 * threshold_m,
+            "underside_chamfer_mm": round(1000 * under["chamfer"], 3),
+            "underside_completeness_mm": round(1000 * under["b_to_a"], 3),
             "bbox_size_error_pct": [round(float(x), 3) for x in 100 * (size - true_size) / true_size]}
 
 

@@ -56,14 +56,14 @@ from pathlib import Path
 import bpy
 import cv2
 import numpy as np
-from mathutils import Vector
+from mathutils import Matrix, Vector
 
 from n2d_blender import materials, objects, renderer
 from n2d_blender.camera import make_camera, set_pose
 from n2d_common.config import from_dict
 from n2d_common.formats.board import T_plate_board, board_image
 from n2d_common.images import srgb_to_linear, to_srgb8
-from n2d_sim.world import SimWorldConfig, T_turntable_cam, object_dir, object_info
+from n2d_sim.world import SimWorldConfig, T_plate_obj, T_turntable_cam, object_dir
 
 OBJECT_INDEX = 1
 BOARD_PX_PER_SQUARE = 128
@@ -216,10 +216,10 @@ class Scene:
         parts = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
         if not parts:
             raise RuntimeError(f"{directory / 'mesh.obj'} holds no mesh")
-        lift = -object_info(self.cfg)["min_z"] / 1000
+        placed = Matrix(T_plate_obj(self.cfg).tolist())  # the placement: turned, then lowered onto the board
         for obj in parts:
             obj.parent = self.rig
-            obj.location = (0.0, 0.0, lift)
+            obj.matrix_basis = placed @ obj.matrix_basis
             obj.pass_index = OBJECT_INDEX
         return parts
 

@@ -30,6 +30,12 @@ class SimWorldConfig:
 
     object: str = "box"
     """A sample object name (box, bottle) or the path of a model directory (mesh.obj, models_info.json)."""
+    placement_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """How the object lies on the plate: rotations about the model frame's X, then Y, then Z axes (fixed axes),
+    degrees, about the model origin, before the object is lowered onto the board (its lowest vertex on the board,
+    the origin over the plate centre; see `T_plate_obj`). (0, 0, 0): upright, as the model frame stands;
+    (90, 0, 0): on its side, the old underside facing -Y. A capture session's second placement turns the object
+    over with it, so that the first placement's underside is seen."""
     width: int = 640
     """Image width, pixels."""
     height: int = 480
@@ -99,6 +105,9 @@ class SimWorldConfig:
                      "fill_light_w", "ceiling_light_w"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if len(self.placement_deg) != 3 or not np.all(np.isfinite(self.placement_deg)):
+            raise ValueError(f"placement_deg must be three angles in degrees, got {self.placement_deg}")
+        self.placement_deg = tuple(float(a) for a in self.placement_deg)
         if self.object not in SAMPLE_OBJECTS and not Path(self.object).is_dir():
             raise ValueError(f"object {self.object!r} is neither a sample object "
                              f"({', '.join(SAMPLE_OBJECTS)}) nor a model directory")
@@ -120,6 +129,36 @@ def _models_info(path: str) -> dict:
     except (OSError, json.JSONDecodeError) as exc:
         raise ContractError(f"cannot read {path}: {exc}", "is this an n2d model directory?") from None
     return next(iter(info.values())) if "diameter" not in info else info
+
+
+@lru_cache(maxsize=32)
+def _obj_vertices(path: str) -> np.ndarray:
+    """The vertex positions of an OBJ file (N x 3, metres)."""
+    try:
+        rows = [line.split()[1:4] for line in Path(path).read_text().splitlines() if line.startswith("v ")]
+    except OSError as exc:
+        raise ContractError(f"cannot read {path}: {exc}", "is this an n2d model directory?") from None
+    return np.array(rows, dtype=float).reshape(-1, 3)
+
+
+def model_vertices(model_dir: str | Path) -> np.ndarray:
+    """N x 3 vertices of a model directory's mesh.obj in its model frame, metres."""
+    return _obj_vertices(str(Path(model_dir) / "mesh.obj"))
+
+
+def object_vertices(cfg: SimWorldConfig) -> np.ndarray:
+    """N x 3 vertices of the configured object's mesh in its model frame, metres."""
+    return model_vertices(object_dir(cfg))
+
+
+def placement_R(placement_deg) -> np.ndarray:
+    """3x3 rotation of a placement: about X, then Y, then Z (fixed axes), degrees (`SimWorldConfig.placement_deg`)."""
+    x, y, z = np.radians(np.asarray(placement_deg, dtype=float))
+    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
 
 
 def object_info(cfg: SimWorldConfig) -> dict:
@@ -157,8 +196,12 @@ def T_turntable_plate(angle_rad: float) -> np.ndarray:
 
 
 def T_plate_obj(cfg: SimWorldConfig) -> np.ndarray:
-    """4x4 pose of the object on the plate: model origin over the plate centre, lowest point on the board."""
-    return make_T(np.eye(3), [0.0, 0.0, -object_info(cfg)["min_z"] / 1000])
+    """4x4 pose of the object on the plate: turned by `placement_deg` about the model origin, the origin over the
+    plate centre, the lowest vertex on the board (upright: the models_info min_z)."""
+    if not any(cfg.placement_deg):
+        return make_T(np.eye(3), [0.0, 0.0, -object_info(cfg)["min_z"] / 1000])
+    R = placement_R(cfg.placement_deg)
+    return make_T(R, [0.0, 0.0, -float((object_vertices(cfg) @ R[2]).min())])
 
 
 def T_turntable_obj(cfg: SimWorldConfig, angle_rad: float) -> np.ndarray:

@@ -7,6 +7,10 @@ frames[].file_path, frames[].mask_path, frames[].transform_matrix); cx, cy follo
 convention (OpenCV + 0.5). Each transform_matrix is camera-to-world, i.e.
 T_turntable_cam in the metric, gravity-aligned, plate-attached turntable frame, with the camera
 axes in nerfstudio's OpenGL convention (x right, y up, z backwards); `T_cam_opencv` converts.
+A session of several placements (the object swept, turned over, and swept again) marks each frame with
+`n2d_placement` (0, 1, ..; absent: 0), and each placement's transform_matrix is in that placement's own
+turntable frame: the reconstruction registers the placements to the first. A one-placement session has
+no such field, so its files are unchanged.
 A simulated session may also hold `truth/images/NNNN.png`, the noise-free render of each view: the
 reconstruction report scores held-out views against it too (no real camera has one).
 """
@@ -20,7 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from n2d_common.contracts import open_stage
+from n2d_common.errors import ContractError
 
+PLACEMENT_KEY = "n2d_placement"
+"""The transforms.json frame field holding the frame's placement index (absent: 0)."""
 PIXEL_EDGE = 0.5
 """nerfstudio and COLMAP put pixel centres at +0.5, OpenCV at integers: cx_nerfstudio = cx_opencv + 0.5."""
 TRUTH_DIR = "truth"
@@ -30,9 +37,10 @@ OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def transforms_json(K: np.ndarray, dist: np.ndarray | None, width: int, height: int,
-                    frames: list[tuple[str, str | None, np.ndarray]]) -> dict:
+                    frames: list[tuple[str, str | None, np.ndarray]], placements: list[int] | None = None) -> dict:
     """nerfstudio transforms.json content; `frames` holds (image file, mask file or None, T_turntable_cam
-    with OpenCV camera axes), paths relative to the session directory."""
+    with OpenCV camera axes), paths relative to the session directory; `placements`, one per frame, the
+    placement index of each (None: one placement, no field written)."""
     d = np.zeros(5) if dist is None or len(dist) == 0 else np.asarray(dist, dtype=float).ravel()
     d = np.pad(d, (0, max(0, 5 - len(d))))
     out = {
@@ -48,10 +56,12 @@ def transforms_json(K: np.ndarray, dist: np.ndarray | None, width: int, height: 
         "orientation_override": "none",
         "frames": [],
     }
-    for image, mask, T in frames:
+    for i, (image, mask, T) in enumerate(frames):
         frame = {"file_path": image, "transform_matrix": (np.asarray(T) @ OPENGL_FROM_OPENCV).tolist()}
         if mask is not None:
             frame["mask_path"] = mask
+        if placements is not None and any(placements):
+            frame[PLACEMENT_KEY] = int(placements[i])
         out["frames"].append(frame)
     return out
 
@@ -66,6 +76,8 @@ class SessionView:
     """4x4 camera pose (OpenCV camera axes) in the turntable frame, metres; None where the file has none."""
     truth: Path | None = None
     """The view's noise-free image (simulated sessions only), else None."""
+    placement: int = 0
+    """The placement the view belongs to (0: the first; its pose is in that placement's turntable frame)."""
 
 
 @dataclass
@@ -80,6 +92,11 @@ class Session:
     views: list[SessionView]
     manifest: dict
 
+    @property
+    def placements(self) -> int:
+        """How many placements the session holds (1 for a turntable sweep of the object standing one way)."""
+        return 1 + max((v.placement for v in self.views), default=0)
+
 
 def read_session(directory: str | Path) -> Session:
     """Open a complete capture session (refusing partial or foreign directories with a hint)."""
@@ -90,8 +107,12 @@ def read_session(directory: str | Path) -> Session:
     dist = np.array([t.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
     views = [SessionView(directory / f["file_path"], directory / f["mask_path"] if "mask_path" in f else None,
                          np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV if "transform_matrix" in f else None,
-                         _existing(directory / TRUTH_DIR / f["file_path"]))
+                         _existing(directory / TRUTH_DIR / f["file_path"]), int(f.get(PLACEMENT_KEY, 0)))
              for f in t["frames"]]
+    present = {v.placement for v in views}
+    if present != set(range(len(present))) or any(v.placement < 0 for v in views):
+        raise ContractError(f"{directory / 'transforms.json'} has frames of placements {sorted(present)}",
+                            f"placements are numbered 0, 1, .. without gaps ({PLACEMENT_KEY})")
     return Session(directory, K, dist, int(t["w"]), int(t["h"]), views, manifest)
 
 
