@@ -89,8 +89,16 @@ def read_manifest(directory: str | Path) -> dict | None:
         manifest = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ContractError(f"{path} is corrupt ({exc})", "delete the directory and run the stage again") from None
-    if not isinstance(manifest, dict) or "kind" not in manifest:
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("kind"), str):
         raise ContractError(f"{path} is not an n2d manifest", "is this directory from another tool?")
+    version = manifest.get("version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise ContractError(f"{path} has format version {version!r}, not a whole number",
+                            "delete the directory and run the stage again")
+    for key in ("config", "extra", "inputs"):
+        if not isinstance(manifest.setdefault(key, {}), dict):
+            raise ContractError(f"{path}: {key} is a {type(manifest[key]).__name__}, not a mapping",
+                                "delete the directory and run the stage again")
     return manifest
 
 
@@ -113,7 +121,7 @@ def open_stage(directory: str | Path, kind: str) -> dict:
     if manifest["kind"] != kind:
         raise ContractError(f"{directory} is a {manifest['kind'].replace('_', ' ')}, not a {kind.replace('_', ' ')}",
                             "check the order of the arguments")
-    if int(manifest.get("version", 0)) > VERSION:
+    if manifest.get("version", 0) > VERSION:
         raise ContractError(f"{directory} was written by a newer n2d (format {manifest['version']} > {VERSION})",
                             "update n2d")
     if not manifest.get("complete"):
@@ -203,3 +211,16 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
         partial.mkdir()
         write_manifest(partial, kind, config=config, complete=False)
     yield StageWriter(out, kind, resumed)
+
+
+@contextmanager
+def discard_on_bad_input(stage: StageWriter, progress_file: str) -> Iterator[None]:
+    """Inside a stage's `with stage_output(...)`: a ContractError (bad input found while working, e.g. a damaged
+    frame) raised before the job kept any work (no `progress_file` in a partial directory this run created)
+    removes the partial directory, so a bad input leaves nothing behind; kept work stays for a resume."""
+    try:
+        yield
+    except ContractError:
+        if not stage.resumed and not (stage.path / progress_file).exists():
+            shutil.rmtree(stage.path, ignore_errors=True)
+        raise

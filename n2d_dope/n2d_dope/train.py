@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from n2d_common.config import to_dict
-from n2d_common.contracts import atomic_write_json, open_stage, stage_output
+from n2d_common.contracts import atomic_write_json, discard_on_bad_input, open_stage, stage_output
 from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
@@ -142,7 +142,8 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     identity = _identity(cfg, name, [Path(d) for d in datasets])
-    with stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage:
+    with (stage_output(out, "dope_model", overwrite=overwrite, config=identity) as stage,
+          discard_on_bad_input(stage, "checkpoint.pt")):
         ckpt_path = stage.path / "checkpoint.pt"
         state = load_checkpoint(ckpt_path) if ckpt_path.is_file() else None
         torch.manual_seed(cfg.seed)
