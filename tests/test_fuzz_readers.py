@@ -230,3 +230,21 @@ def _load_config_text(cls, data, tmp_path: Path):
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(data) if not isinstance(data, float) else str(data))
     return load_config(cls, path)
+
+
+def test_a_refused_input_is_one_error_line_after_the_progress_bar(tmp_path):
+    """The CLI ends a progress bar the failing job had drawn, so its error is a line of its own, then the hint."""
+    import subprocess
+    import sys
+
+    from n2d_sim.session import render_session, small_world
+
+    render_session(tmp_path / "session", small_world("box", 64, 48), views=2)
+    corrupt.edit_json(tmp_path / "session" / "transforms.json", lambda t: t["frames"][0].update(file_path=7))
+    result = subprocess.run([sys.executable, "-m", "n2d.cli", "reconstruct", str(tmp_path / "session"),
+                             str(tmp_path / "model")], capture_output=True, text=True, timeout=300)
+    lines = result.stderr.replace("\r", "\n").splitlines()
+    errors = [ln for ln in lines if ln.startswith("n2d: error:")]
+    assert result.returncode == 2 and len(errors) == 1 and "transforms.json is malformed" in errors[0], result.stderr
+    assert lines[lines.index(errors[0]) + 1].startswith("  hint: ")
+    assert not (tmp_path / "model").exists() and not (tmp_path / "model.partial").exists()
