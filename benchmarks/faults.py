@@ -274,6 +274,13 @@ def _stop(proc: subprocess.Popen, sig: int) -> Run:
     return Run(proc.returncode, "", err, 0.0)
 
 
+def _again(stage: Stage, out: Path, first: Run) -> Run:
+    """The same command again, unless the first run had finished before the fault reached it."""
+    if first.rc == 0 or stage.looks_complete(out):
+        return Run(0, "", "", 0.0)
+    return _run(stage.command(out))
+
+
 def kill_trials(stage: Stage, reference: Path, ref_s: float, sig: int, trials: int, rng: random.Random,
                 tally: Tally) -> None:
     for i in range(trials):
@@ -284,7 +291,7 @@ def kill_trials(stage: Stage, reference: Path, ref_s: float, sig: int, trials: i
             time.sleep(0.05)
         first = _stop(proc, sig)
         before = stage.finished(out)
-        rerun = _run(stage.command(out))
+        rerun = _again(stage, out, first)
         tally.trials += 1
         ok = rerun.rc == 0 and stage.same(out, reference)
         tally.recovered += ok
@@ -407,7 +414,7 @@ def disk_trials(stage: Stage, reference: Path, trials: int, rng: random.Random, 
             looks_complete = stage.looks_complete(out)
             before = stage.finished(out)
             disk.grow(4 * need + (1 << 20))
-            rerun = _run(stage.command(out), preexec_fn=None)
+            rerun = _again(stage, out, first)
             tally.trials += 1
             tally.clean += (clean_error(first) or first.rc == 0) and not (looks_complete and first.rc != 0)
             ok = rerun.rc == 0 and stage.same(out, reference)
@@ -609,7 +616,8 @@ def _descendants(pid: int) -> list[int]:
                 continue
     out, todo = [], [pid]
     while todo:
-        kids = [c for c, p in parents.items() if p == todo.pop(0)]
+        parent = todo.pop(0)
+        kids = [c for c, p in parents.items() if p == parent]
         out += kids
         todo += kids
     return out

@@ -114,3 +114,19 @@ def test_bad_input_found_before_any_kept_work_leaves_nothing(tmp_path):
         (w.path / "ckpt").write_text("step 3")
         raise ContractError("a damaged frame", "regenerate the dataset")
     assert (tmp_path / "dope.partial" / "ckpt").read_text() == "step 3"  # kept work stays for a resume
+
+
+def test_a_write_killed_half_way_leaves_nothing_in_the_output(tmp_path):
+    """kill -9 during an atomic write leaves its temporary file (no handler runs); resuming and finishing remove it,
+    so the published directory holds only what the stage wrote."""
+    out = tmp_path / "ds"
+    with pytest.raises(RuntimeError), stage_output(out, "dataset", config={"frames": 2}) as w:
+        (w.path / "rgb").mkdir()
+        (w.path / "rgb" / ".000001.png.k2j4x.tmp").write_bytes(b"half a frame")  # what the killed write left
+        raise RuntimeError("killed")
+    with stage_output(out, "dataset", config={"frames": 2}) as w:
+        assert w.resumed and not any(w.path.rglob("*.tmp"))
+        (w.path / "rgb" / ".000002.png.q8d1m.tmp").write_bytes(b"another")  # a writer thread killed later
+        atomic_write_json(w.path / "rgb" / "000001.json", {})
+        w.finish()
+    assert sorted(p.name for p in out.rglob("*") if p.is_file()) == ["000001.json", MANIFEST]

@@ -53,4 +53,4 @@ except OSError as exc:
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert result.stdout.split() == ["OSError", str(tmp_path / "ckpt.pt")], result.stderr
     assert torch.equal(load_checkpoint(tmp_path / "ckpt.pt")["model"]["w"], torch.ones(1))
-    assert not (tmp_path / "ckpt.pt.tmp").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["ckpt.pt"]  # no temporary file left

@@ -31,6 +31,19 @@ KINDS = ("capture_session", "model", "dataset", "dope_model", "run", "sim_frames
 """The directory kinds n2d writes, in pipeline order."""
 
 
+LEFTOVER = ".*.tmp"
+"""Name pattern of the temporary files of atomic writes (`.<name>.<random>.tmp`): a process killed half way
+through a write leaves one, which the stage removes when it resumes and before it publishes its output."""
+
+
+def remove_leftovers(directory: Path) -> int:
+    """Delete the temporary files of interrupted atomic writes below `directory`; returns how many."""
+    found = [p for p in Path(directory).rglob(LEFTOVER) if p.is_file()]
+    for p in found:
+        p.unlink(missing_ok=True)
+    return len(found)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write `data` to `path` through a temporary file in the same directory and an atomic rename."""
     path = Path(path)
@@ -151,6 +164,7 @@ class StageWriter:
     def finish(self, *, config: dict | None = None, inputs: dict | None = None,
                extra: dict | None = None) -> dict:
         """Write the complete manifest and rename the directory into place (replacing an old output)."""
+        remove_leftovers(self.path)
         manifest = write_manifest(self.path, self.kind, config=config, inputs=inputs, extra=extra)
         old = None
         if self.out.exists():
@@ -201,6 +215,7 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
         same_job = previous["kind"] == kind and (config is None or previous.get("config") == config)
         if resume and same_job:
             resumed = True
+            remove_leftovers(partial)
         elif overwrite:
             shutil.rmtree(partial)
         else:

@@ -27,7 +27,7 @@ def atomic_torch_save(obj: dict, path: str | Path) -> None:
     the earlier file at `path` stays."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # contracts.LEFTOVER: removed if a kill leaves it
     try:
         torch.save(obj, tmp)
     except (OSError, RuntimeError) as exc:
