@@ -132,8 +132,13 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
         stack.enter_context(Launch(load("dope"), {"models": str(model), "precision": precision}, log=logs.append))
         node = stack.enter_context(background_node("dope_benchmark", domain))
         every = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        node.create_subscription(Detection3DArray, "/n2d/dope/detections",
-                                 lambda m: latencies.append(time.time() - stamp_seconds(m.header.stamp)), every)
+        arrivals = []
+
+        def received(m) -> None:
+            latencies.append(time.time() - stamp_seconds(m.header.stamp))
+            arrivals.append(time.monotonic())
+
+        node.create_subscription(Detection3DArray, "/n2d/dope/detections", received, every)
         if replay is None:  # the camera's rate; a replay counts what it publishes
             node.create_subscription(Image, "/n2d/camera/image_raw", lambda m: frames_in.append(1), every)
         image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS) if replay else None
@@ -145,6 +150,7 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
             time.sleep(0.1)
         time.sleep(3.0)  # model loading and the first frames
         latencies.clear()
+        arrivals.clear()
         frames_in.clear()
         t0 = time.monotonic()
         i = 0
@@ -161,7 +167,8 @@ def _stream(model: Path, seconds: float, precision: str, replay: list | None) ->
                 time.sleep(0.1)
         elapsed = time.monotonic() - t0
     return {"fps_in": len(frames_in) / elapsed, "fps_out": len(latencies) / elapsed,
-            "latency_ms": 1000 * np.array(latencies) if latencies else np.array([np.nan])}
+            "latency_ms": 1000 * np.array(latencies) if latencies else np.array([np.nan]),
+            "arrivals_s": list(arrivals[:len(latencies)])}
 
 
 def node_rows(model: Path, test: Path, seconds: float) -> list[tuple[str, ...]]:

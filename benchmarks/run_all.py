@@ -7,8 +7,8 @@
 Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct, dataset, dope, estimator
 (the default recipe within the demo's budget, trained per object), tracking (refinement and tracking on the
 validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`;
-`--args pipeline='--run DIR'` reads a finished run instead). Each runs as its own process
-(`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so that
+`--args pipeline='--run DIR'` reads a finished run instead), then faults (the fault campaign). Each runs as its
+own process (`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so that
 `table.print_table` hands its rows over as JSON lines; its output is shown as it runs and kept in a log
 directory (a temporary one unless `--logs`). Without `--quick` each benchmark runs with its own defaults (the
 numbers the README cites, an hour or more on 2 cores); `--quick` gives each smaller settings (fewer views,
@@ -53,7 +53,7 @@ HERE = Path(__file__).resolve().parent
 
 STAGES = {"sim_camera": "sim camera", "board_poses": "board poses", "masks": "masks", "capture": "capture",
           "reconstruct": "reconstruct", "dataset": "dataset", "dope": "dope", "estimator": "estimator",
-          "tracking": "tracking", "pipeline": "whole pipeline"}
+          "tracking": "tracking", "pipeline": "whole pipeline", "faults": "faults"}
 """Benchmark script name: stage name in the table, in pipeline order."""
 QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "board_poses": ["--views", "12"],
@@ -65,7 +65,8 @@ QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "estimator": ["--test-frames", "8", "--set", "frames=60", "--set", "train_minutes=1"],
          "tracking": ["--frames", "12"],
          "pipeline": ["--set", "pipeline.views=12", "--set", "pipeline.test_views=4", "--set", "pipeline.frames=24",
-                      "--set", "pipeline.test_frames=8", "--set", "pipeline.train_minutes=2", "--set", "live_views=4"]}
+                      "--set", "pipeline.test_frames=8", "--set", "pipeline.train_minutes=2", "--set", "live_views=4"],
+         "faults": ["--trials", "1"]}
 """Small settings per benchmark for `--quick`."""
 VERDICTS = {"yes": "yes", "met": "yes", "no": "NO", "not met": "NO"}
 """What the benchmarks print in a met column (or a note column): the table's met."""

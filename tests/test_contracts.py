@@ -90,3 +90,43 @@ def test_corrupt_and_newer_manifests(tmp_path):
     (out / MANIFEST).write_text("{not json")
     with pytest.raises(ContractError, match="corrupt"):
         open_stage(out, "model")
+
+
+@pytest.mark.parametrize("edit", [{"kind": 7}, {"version": "one"}, {"version": 1.5}, {"config": [1]}])
+def test_manifest_fields_of_another_type_are_refused(tmp_path, edit):
+    out = tmp_path / "model"
+    _write(out)
+    manifest = json.loads((out / MANIFEST).read_text())
+    (out / MANIFEST).write_text(json.dumps(manifest | edit))
+    with pytest.raises(ContractError) as err:
+        open_stage(out, "model")
+    assert err.value.hint
+
+
+def test_bad_input_found_before_any_kept_work_leaves_nothing(tmp_path):
+    from n2d_common.contracts import discard_on_bad_input
+
+    out = tmp_path / "dope"
+    with pytest.raises(ContractError), stage_output(out, "dope_model") as w, discard_on_bad_input(w, "ckpt"):
+        raise ContractError("a damaged frame", "regenerate the dataset")
+    assert not out.exists() and not (tmp_path / "dope.partial").exists()
+    with pytest.raises(ContractError), stage_output(out, "dope_model") as w, discard_on_bad_input(w, "ckpt"):
+        (w.path / "ckpt").write_text("step 3")
+        raise ContractError("a damaged frame", "regenerate the dataset")
+    assert (tmp_path / "dope.partial" / "ckpt").read_text() == "step 3"  # kept work stays for a resume
+
+
+def test_a_write_killed_half_way_leaves_nothing_in_the_output(tmp_path):
+    """kill -9 during an atomic write leaves its temporary file (no handler runs); resuming and finishing remove it,
+    so the published directory holds only what the stage wrote."""
+    out = tmp_path / "ds"
+    with pytest.raises(RuntimeError), stage_output(out, "dataset", config={"frames": 2}) as w:
+        (w.path / "rgb").mkdir()
+        (w.path / "rgb" / ".000001.png.k2j4x.tmp").write_bytes(b"half a frame")  # what the killed write left
+        raise RuntimeError("killed")
+    with stage_output(out, "dataset", config={"frames": 2}) as w:
+        assert w.resumed and not any(w.path.rglob("*.tmp"))
+        (w.path / "rgb" / ".000002.png.q8d1m.tmp").write_bytes(b"another")  # a writer thread killed later
+        atomic_write_json(w.path / "rgb" / "000001.json", {})
+        w.finish()
+    assert sorted(p.name for p in out.rglob("*") if p.is_file()) == ["000001.json", MANIFEST]

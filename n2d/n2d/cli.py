@@ -15,6 +15,14 @@ from n2d_common import __version__
 from n2d_common.errors import ConfigError, N2DError
 
 
+def _close_progress_bars() -> None:
+    """End the progress bars still drawn (a job that failed half way), so the error starts a line of its own."""
+    from tqdm import tqdm
+
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+
+
 def _progress_bar(desc: str):
     """A ProgressFn drawing one tqdm bar (0..100 %) with the stage and message as postfix.
 
@@ -612,16 +620,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except N2DError as exc:
+        _close_progress_bars()
         print(f"n2d: error: {exc.message}", file=sys.stderr)
         if exc.hint:
             print(f"  hint: {exc.hint}", file=sys.stderr)
         return 2
     except OSError as exc:
+        _close_progress_bars()
         where = f": {exc.filename}" if exc.filename else ""
         print(f"n2d: error: {exc.strerror or exc}{where}", file=sys.stderr)
         print("  hint: check free disk space and permissions; finished work is kept", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _close_progress_bars()
         print("n2d: interrupted; finished work is kept and the same command resumes it", file=sys.stderr)
         return 130
 

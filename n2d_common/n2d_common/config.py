@@ -110,7 +110,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
                     raise ValueError
                 return int(number)
             return float(number)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}") from None
     if tp is str:
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
@@ -125,7 +125,9 @@ def from_dict(cls: type[C], data: dict, where: str = "") -> C:
     """Build dataclass `cls` from a (nested) mapping; unknown keys and bad types raise ConfigError."""
     hints = _hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - names)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {data!r}")
+    unknown = sorted(str(k) for k in set(data) - names)
     if unknown:
         raise ConfigError(
             f"{where or cls.__name__}: unknown key(s) {', '.join(unknown)}",

@@ -31,6 +31,19 @@ KINDS = ("capture_session", "model", "dataset", "dope_model", "run", "sim_frames
 """The directory kinds n2d writes, in pipeline order."""
 
 
+LEFTOVER = ".*.tmp"
+"""Name pattern of the temporary files of atomic writes (`.<name>.<random>.tmp`): a process killed half way
+through a write leaves one, which the stage removes when it resumes and before it publishes its output."""
+
+
+def remove_leftovers(directory: Path) -> int:
+    """Delete the temporary files of interrupted atomic writes below `directory`; returns how many."""
+    found = [p for p in Path(directory).rglob(LEFTOVER) if p.is_file()]
+    for p in found:
+        p.unlink(missing_ok=True)
+    return len(found)
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write `data` to `path` through a temporary file in the same directory and an atomic rename."""
     path = Path(path)
@@ -89,8 +102,16 @@ def read_manifest(directory: str | Path) -> dict | None:
         manifest = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ContractError(f"{path} is corrupt ({exc})", "delete the directory and run the stage again") from None
-    if not isinstance(manifest, dict) or "kind" not in manifest:
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("kind"), str):
         raise ContractError(f"{path} is not an n2d manifest", "is this directory from another tool?")
+    version = manifest.get("version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise ContractError(f"{path} has format version {version!r}, not a whole number",
+                            "delete the directory and run the stage again")
+    for key in ("config", "extra", "inputs"):
+        if not isinstance(manifest.setdefault(key, {}), dict):
+            raise ContractError(f"{path}: {key} is a {type(manifest[key]).__name__}, not a mapping",
+                                "delete the directory and run the stage again")
     return manifest
 
 
@@ -113,7 +134,7 @@ def open_stage(directory: str | Path, kind: str) -> dict:
     if manifest["kind"] != kind:
         raise ContractError(f"{directory} is a {manifest['kind'].replace('_', ' ')}, not a {kind.replace('_', ' ')}",
                             "check the order of the arguments")
-    if int(manifest.get("version", 0)) > VERSION:
+    if manifest.get("version", 0) > VERSION:
         raise ContractError(f"{directory} was written by a newer n2d (format {manifest['version']} > {VERSION})",
                             "update n2d")
     if not manifest.get("complete"):
@@ -143,6 +164,7 @@ class StageWriter:
     def finish(self, *, config: dict | None = None, inputs: dict | None = None,
                extra: dict | None = None) -> dict:
         """Write the complete manifest and rename the directory into place (replacing an old output)."""
+        remove_leftovers(self.path)
         manifest = write_manifest(self.path, self.kind, config=config, inputs=inputs, extra=extra)
         old = None
         if self.out.exists():
@@ -193,6 +215,7 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
         same_job = previous["kind"] == kind and (config is None or previous.get("config") == config)
         if resume and same_job:
             resumed = True
+            remove_leftovers(partial)
         elif overwrite:
             shutil.rmtree(partial)
         else:
@@ -203,3 +226,16 @@ def stage_output(out: str | Path, kind: str, *, overwrite: bool = False, resume:
         partial.mkdir()
         write_manifest(partial, kind, config=config, complete=False)
     yield StageWriter(out, kind, resumed)
+
+
+@contextmanager
+def discard_on_bad_input(stage: StageWriter, progress_file: str) -> Iterator[None]:
+    """Inside a stage's `with stage_output(...)`: a ContractError (bad input found while working, e.g. a damaged
+    frame) raised before the job kept any work (no `progress_file` in a partial directory this run created)
+    removes the partial directory, so a bad input leaves nothing behind; kept work stays for a resume."""
+    try:
+        yield
+    except ContractError:
+        if not stage.resumed and not (stage.path / progress_file).exists():
+            shutil.rmtree(stage.path, ignore_errors=True)
+        raise

@@ -16,6 +16,11 @@ class N2DError(Exception):
 class ConfigError(N2DError):
     """A configuration file, override or parameter is malformed or out of range."""
 
+    DEFAULT_HINT = "fix the value in the config file, the --set override or the parameter"
+
+    def __init__(self, message: str, hint: str = ""):
+        super().__init__(message, hint or self.DEFAULT_HINT)
+
 
 class ContractError(N2DError):
     """A stage directory is missing, incomplete, of another kind, or would overwrite something."""

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from n2d_common.contracts import atomic_write_bytes
+from n2d_common.errors import ContractError
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
@@ -119,9 +120,31 @@ def write_png(path: str | Path, rgb: np.ndarray) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
+_SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"), ".jpg": (b"\xff\xd8", b"\xff\xd9"),
+               ".jpeg": (b"\xff\xd8", b"\xff\xd9")}
+
+
+def looks_complete(path: str | Path) -> bool:
+    """Whether a PNG or JPEG file starts and ends as one does (its signature, PNG's IEND chunk, JPEG's end-of-image
+    marker): a cheap test, reading a few bytes, that catches truncated, empty and garbage files."""
+    head, tail = _SIGNATURES[Path(path).suffix.lower()]
+    try:
+        with open(path, "rb") as f:
+            start = f.read(len(head))
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 16))
+            end = f.read()
+    except OSError:
+        return False
+    return start == head and tail in end
+
+
 def read_png(path: str | Path) -> np.ndarray:
-    """RGB uint8 (or single-channel) image from a PNG."""
+    """RGB uint8 (or single-channel) image from a PNG; ContractError when it is missing or cannot be decoded."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise OSError(f"cannot read image {path}")
+        why = "it is missing" if not Path(path).is_file() else "it is truncated or not an image"
+        raise ContractError(f"cannot read image {path}: {why}",
+                            "the directory is damaged: run the stage that wrote it again")
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import pickle
 from contextlib import contextmanager
@@ -20,11 +21,22 @@ def resolve_device(name: str) -> torch.device:
 
 
 def atomic_torch_save(obj: dict, path: str | Path) -> None:
-    """torch.save to a temporary file next to `path`, then rename it into place."""
+    """torch.save to a temporary file next to `path`, then rename it into place.
+
+    A write that fails (torch's zip writer reports a full disk as a RuntimeError) raises OSError naming `path`, and
+    the earlier file at `path` stays."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # contracts.LEFTOVER: removed if a kill leaves it
+    try:
+        torch.save(obj, tmp)
+    except (OSError, RuntimeError) as exc:
+        full = os.statvfs(path.parent).f_bavail == 0
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise
+        raise OSError(errno.ENOSPC if full else errno.EIO, "no space left on device" if full
+                      else f"could not write ({exc})", str(path)) from None
     os.replace(tmp, path)
 
 

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from n2d_common.contracts import open_stage
+from n2d_common.errors import ContractError
 from n2d_common.frames import R_from_quat, make_T, project, transform_points
 from n2d_common.images import read_png
 from n2d_common.raster import render_depth
@@ -56,14 +57,40 @@ def silhouette(vertices: np.ndarray, faces: np.ndarray, T_cam_obj: np.ndarray, K
 
 
 def check_dataset(root: str | Path) -> dict:
-    """Measure the annotations of the dataset in `root`; returns mean/max errors and counts."""
+    """Measure the annotations of the dataset in `root`; returns mean/max errors and counts.
+
+    Raises ContractError for a dataset whose files are missing or malformed (naming the frame)."""
     root = Path(root)
-    ids = open_stage(root, "dataset")["extra"]["models"]  # name -> BOP obj_id
-    models = {m.obj_id: m for m in load_models([root / "models" / name for name in sorted(ids, key=ids.get)])}
+    try:
+        ids = dict(open_stage(root, "dataset")["extra"]["models"])  # name -> BOP obj_id
+        names = sorted(ids, key=lambda n: int(ids[n]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ContractError(f"the manifest of {root} has no valid extra.models ({type(exc).__name__}: {exc})",
+                            _DAMAGED) from None
+    models = {m.obj_id: m for m in load_models([root / "models" / name for name in names])}
+    where = [root]
+    try:
+        return _check(root, models, where)
+    except OSError as exc:
+        raise ContractError(f"cannot read {exc.filename or where[-1]}: {exc.strerror or exc}", _DAMAGED) from None
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise ContractError(f"the annotations of {root} are malformed at {where[-1]} ({type(exc).__name__}: {exc})",
+                            _DAMAGED) from None
+
+
+_DAMAGED = "the dataset is damaged: generate it again (n2d dataset)"
+
+
+def _check(root: Path, models: dict, where: list) -> dict:
+    """check_dataset's measurements; `where` gets the frame being read (for the error of a malformed one)."""
     by_name = {m.name: m for m in models.values()}
     offsets, depth_err, visib_err, dope_px, instances = [], [], [], [], 0
     for chunk, im, dope, gts, infos, K in frames(root):
-        depth = cv2.imread(str(chunk / "depth" / f"{im:06d}.png"), cv2.IMREAD_UNCHANGED) * DEPTH_SCALE / 1000.0
+        where.append(f"frame {im} of {chunk}")
+        depth = cv2.imread(str(chunk / "depth" / f"{im:06d}.png"), cv2.IMREAD_UNCHANGED)
+        if depth is None or depth.ndim != 2:
+            raise ContractError(f"cannot read the depth image of frame {im} in {chunk}", _DAMAGED)
+        depth = depth * DEPTH_SCALE / 1000.0
         h, w = depth.shape
         for k, (gt, info, obj) in enumerate(zip(gts, infos, dope["objects"])):
             instances += 1

@@ -70,10 +70,20 @@ def _check_mesh(model: Model) -> None:
     if "\nvt " not in text:
         raise ContractError(f"{model.directory / 'mesh.obj'} has no texture coordinates (vt): it would render "
                             "untextured", "export the model with its UV atlas (n2d reconstruct writes one)")
-    extent = float(np.ptp(model.mesh.vertices, axis=0).max())
+    mesh = model.mesh
+    if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
+        raise ContractError(f"{model.directory / 'mesh.obj'} has no faces or non-finite vertices",
+                            "re-run n2d reconstruct for this model, or check the mesh's export")
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
     if extent > MAX_EXTENT_M:
         raise ContractError(f"{model.directory / 'mesh.obj'} is {extent:.1f} units across: it looks like millimetres, "
                             "n2d models are in metres", "scale the mesh by 0.001 (n2d reconstruct writes metres)")
+
+
+def _finite(value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise ValueError(f"{value!r} is not a finite number")
+    return float(value)
 
 
 def load_models(directories: list[str | Path]) -> list[Model]:
@@ -90,11 +100,14 @@ def load_models(directories: list[str | Path]) -> list[Model]:
         names.add(name)
         try:
             info = next(iter(json.loads((d / "models_info.json").read_text()).values()))
-            lo = [info[f"min_{a}"] / 1000 for a in "xyz"]
-            size = [info[f"size_{a}"] / 1000 for a in "xyz"]
-            entry = (tuple(lo), tuple(size), info["diameter"] / 1000)
-        except (OSError, ValueError, KeyError, StopIteration) as exc:
-            raise ContractError(f"{d / 'models_info.json'} is missing or malformed ({exc})",
+            number = {k: _finite(info[k]) for k in ("diameter", *(f"{m}_{a}" for m in ("min", "size") for a in "xyz"))}
+            lo = [number[f"min_{a}"] / 1000 for a in "xyz"]
+            size = [number[f"size_{a}"] / 1000 for a in "xyz"]
+            if min(size) < 0 or number["diameter"] <= 0:
+                raise ValueError("sizes and diameter must be positive")
+            entry = (tuple(lo), tuple(size), number["diameter"] / 1000)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, StopIteration) as exc:
+            raise ContractError(f"{d / 'models_info.json'} is missing or malformed ({type(exc).__name__}: {exc})",
                                 "re-run n2d reconstruct for this model") from None
         if not (d / "mesh.obj").is_file():
             raise ContractError(f"{d} has no mesh.obj", "re-run n2d reconstruct for this model")

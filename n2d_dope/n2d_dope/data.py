@@ -17,6 +17,7 @@ import torch
 from n2d_common.contracts import open_stage
 from n2d_common.errors import ConfigError, ContractError
 from n2d_common.frames import R_from_quat, make_T, project
+from n2d_common.images import looks_complete
 from n2d_common.symmetry import canonical_pose, from_models_info, symmetric_poses
 from n2d_dope.config import AugmentConfig, TrainConfig
 from n2d_dope.network import STRIDE
@@ -63,29 +64,72 @@ def open_dataset(directory: str | Path) -> DatasetInfo:
     """Read a complete n2d dataset: its frames (sorted) and the cuboids of its objects."""
     directory = Path(directory)
     manifest = open_stage(directory, "dataset")
-    extra, camera = manifest["extra"], manifest["config"]["camera"]
-    if not extra.get("annotated", True):
-        raise ContractError(f"{directory} was rendered without annotations", "generate it with annotate: true")
-    signs = np.array(extra["cuboid_signs"], dtype=float)
-    cuboids = {name: np.array(c["center"]) + signs * np.array(c["size"]) / 2 for name, c in extra["cuboids_m"].items()}
-    chunk_size = int(manifest["config"].get("chunk_size", 1000))
-    # Datasets written before the fast path existed are all Cycles frames.
-    photoreal = int(extra.get("photoreal_frames", extra.get("frames", 0) if extra.get("renderer", "cycles") == "cycles"
-                              else 0))
+    try:
+        extra, camera = manifest["extra"], manifest["config"]["camera"]
+        if not extra.get("annotated", True):
+            raise ContractError(f"{directory} was rendered without annotations", "generate it with annotate: true")
+        signs = np.array(extra["cuboid_signs"], dtype=float)
+        if signs.shape != (9, 3):
+            raise ValueError(f"cuboid_signs is {signs.shape}, not 9 x 3")
+        cuboids = {str(name): np.array(c["center"], float) + signs * np.array(c["size"], float) / 2
+                   for name, c in extra["cuboids_m"].items()}
+        chunk_size = int(manifest["config"].get("chunk_size", 1000))
+        # Datasets written before the fast path existed are all Cycles frames.
+        photoreal = int(extra.get("photoreal_frames", extra.get("frames", 0)
+                                  if extra.get("renderer", "cycles") == "cycles" else 0))
+        focal, size = float(camera["focal_px"]), (int(camera["width"]), int(camera["height"]))
+        if not (np.isfinite(focal) and focal > 0 and min(size) > 0 and chunk_size > 0):
+            raise ValueError(f"camera focal_px {focal}, size {size}, chunk_size {chunk_size}")
+        if not all(np.isfinite(c).all() for c in cuboids.values()):
+            raise ValueError("a cuboid is not finite")
+        cuboid_order, inputs = [str(k) for k in extra["cuboid_order"]], dict(manifest["inputs"])
+        obj_ids = dict(extra.get("models", {}))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"has no {exc}" if isinstance(exc, KeyError) else f"is malformed ({type(exc).__name__}: {exc})"
+        raise ContractError(f"the manifest of {directory} {what}", _DAMAGED) from None
     frames = []
     for annotation in sorted(directory.glob("train_pbr/*/rgb/*.json")):
         image = next((annotation.with_suffix(s) for s in (".jpg", ".png") if annotation.with_suffix(s).is_file()),
                      None)
         if image is not None:
+            if not looks_complete(image):
+                raise ContractError(f"{image} is truncated or not an image", _DAMAGED)
+            check_annotation(annotation)
             chunk = annotation.parent.parent
             index = int(chunk.name) * chunk_size + int(annotation.stem)
             frames.append(Frame(image, annotation, chunk, int(annotation.stem), index < photoreal))
     if not frames:
         raise ContractError(f"{directory} has no frames with DOPE annotations (train_pbr/*/rgb/*.json)",
                             "generate the dataset with n2d dataset")
-    return DatasetInfo(directory, frames, cuboids, list(extra["cuboid_order"]), float(camera["focal_px"]),
-                       (int(camera["width"]), int(camera["height"])), dict(manifest["inputs"]),
-                       {directory: sorted(cuboids)}, _symmetries(directory, extra.get("models", {})))
+    return DatasetInfo(directory, frames, cuboids, cuboid_order, focal, size, inputs, {directory: sorted(cuboids)},
+                       _symmetries(directory, obj_ids))
+
+
+_DAMAGED = "the dataset is damaged: generate it again (n2d dataset)"
+
+
+def check_annotation(path: Path) -> dict:
+    """A frame's DOPE annotation, checked to hold what training reads (ContractError otherwise)."""
+    try:
+        annotation = json.loads(path.read_text())
+        intrinsics = annotation.get("camera_data", {}).get("intrinsics")
+        if intrinsics is not None:
+            [float(intrinsics[k]) for k in ("fx", "fy", "cx", "cy")]
+        for obj in annotation["objects"]:
+            if not isinstance(obj["class"], str) or np.asarray(obj["projected_cuboid"], float).shape != (9, 2):
+                raise ValueError("an object needs a class name and 9 projected keypoints")
+            float(obj.get("visibility", 1.0))
+            if np.asarray(obj.get("keypoint_visibility", [1] * 9), float).shape != (9,):
+                raise ValueError("keypoint_visibility must have 9 entries")
+            if intrinsics is not None:
+                np.asarray(obj["location"], float).reshape(3)
+                np.asarray(obj["quaternion_xyzw"], float).reshape(4)
+    except OSError as exc:
+        raise ContractError(f"cannot read {path}: {exc.strerror or exc}", _DAMAGED) from None
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"has no {exc}" if isinstance(exc, KeyError) else f"is malformed ({type(exc).__name__}: {exc})"
+        raise ContractError(f"{path} {what}", _DAMAGED) from None
+    return annotation
 
 
 def _symmetries(directory: Path, obj_ids: dict[str, int]) -> dict[str, list[np.ndarray]]:
@@ -316,7 +360,10 @@ def _union_mask(frame: Frame) -> np.ndarray | None:
     masks = frame.masks()
     if not masks:
         return None
-    union = cv2.imread(str(masks[0]), cv2.IMREAD_GRAYSCALE) > 0
-    for path in masks[1:]:
-        union |= cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
+    union = None
+    for path in masks:
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if mask is None or (union is not None and mask.shape != union.shape):
+            raise ContractError(f"cannot read the mask {path}, or it has another size than the frame's", _DAMAGED)
+        union = mask > 0 if union is None else union | (mask > 0)
     return union.astype(np.uint8)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from n2d_common.contracts import open_stage
-from n2d_common.errors import ConfigError
+from n2d_common.errors import ConfigError, ContractError
 from n2d_common.frames import project
 from n2d_dope.config import DetectConfig, RefineConfig
 from n2d_dope.export import INPUT, OUTPUTS, session
@@ -150,6 +150,51 @@ def _solve(points_px: np.ndarray, cuboid_m: np.ndarray, K: np.ndarray, ok: np.nd
     return T, float(np.sqrt(((proj - img) ** 2).sum(1).mean()))
 
 
+_DAMAGED = "the DOPE model directory is damaged: train it again (n2d train), or restore it"
+
+
+def read_model_config(directory: Path) -> dict:
+    """A DOPE model directory's config.json, checked to hold what detection reads (ContractError otherwise)."""
+    path = directory / "config.json"
+    try:
+        config = json.loads(path.read_text())
+        models, cuboid = config["models"], np.asarray(config["cuboid_points_m"], float)
+        if not isinstance(models, dict) or not all(isinstance(v, str) for v in models.values()):
+            raise ValueError("models must map precisions to ONNX file names")
+        if cuboid.shape != (9, 3) or not np.isfinite(cuboid).all():
+            raise ValueError(f"cuboid_points_m is not 9 finite points (shape {cuboid.shape})")
+        focal = config.get("trained_focal_px", 1.0)
+        if isinstance(focal, bool) or not isinstance(focal, (int, float)) or not np.isfinite(focal) or focal <= 0:
+            raise ValueError(f"trained_focal_px is {focal!r}, not a number > 0")
+        if not isinstance(config["object"], str):
+            raise ValueError("object is not a name")
+    except OSError as exc:
+        raise ContractError(f"cannot read {path}: {exc.strerror or exc}", _DAMAGED) from None
+    except (KeyError, TypeError, ValueError) as exc:
+        what = f"has no {exc}" if isinstance(exc, KeyError) else f"is malformed ({type(exc).__name__}: {exc})"
+        raise ContractError(f"{path} {what}", _DAMAGED) from None
+    return config
+
+
+def _checked_session(path: Path, threads: int):
+    """The onnxruntime session of a DOPE network, checked to take an RGB image and give DOPE's maps."""
+    if not path.is_file():
+        raise ContractError(f"{path} does not exist", _DAMAGED)
+    try:
+        sess = session(path, threads)
+    except Exception as exc:  # onnxruntime's errors (InvalidProtobuf, Fail, ...) share no base class
+        raise ContractError(f"onnxruntime cannot load {path} ({type(exc).__name__})", _DAMAGED) from None
+    inputs = {i.name: i.shape for i in sess.get_inputs()}
+    outputs = {o.name: o.shape for o in sess.get_outputs()}
+    expected = {OUTPUTS[0]: 9, OUTPUTS[1]: 16}
+    if (list(inputs) != [INPUT] or len(inputs[INPUT]) != 4 or inputs[INPUT][1] != 3
+            or any(len(outputs.get(name) or []) != 4 or outputs[name][1] != n for name, n in expected.items())):
+        maps = ", ".join(f"{k} N x {n} x h x w" for k, n in expected.items())
+        raise ContractError(f"{path} is not a DOPE network: it takes {inputs} and gives {outputs}, not "
+                            f"{INPUT} N x 3 x H x W in and {maps} out", _DAMAGED)
+    return sess
+
+
 class DopeModel:
     """A DOPE model directory ready to detect its object: the ONNX session and the cuboid."""
 
@@ -157,15 +202,15 @@ class DopeModel:
                  threads: int = 0, refine: RefineConfig | None = None, object_dir: str | Path | None = None):
         self.directory = Path(directory)
         open_stage(self.directory, "dope_model")
-        self.config = json.loads((self.directory / "config.json").read_text())
+        self.config = read_model_config(self.directory)
         if precision not in self.config["models"]:
             raise ConfigError(f"{self.directory} has no {precision} model",
                               f"available: {', '.join(self.config['models'])}")
         self.precision = precision
         self.cfg = cfg or DetectConfig()
         self.name = self.config["object"]
-        self.cuboid_m = np.array(self.config["cuboid_points_m"])
-        self.session = session(self.directory / self.config["models"][precision], threads)
+        self.cuboid_m = np.array(self.config["cuboid_points_m"], float)
+        self.session = _checked_session(self.directory / self.config["models"][precision], threads)
         self.timing = Timing()
         self.refiner = None
         if refine is not None:

@@ -24,7 +24,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 
 from n2d_common.config import to_dict
-from n2d_common.contracts import atomic_write_json, open_stage, stage_output
+from n2d_common.contracts import atomic_write_json, discard_on_bad_input, open_stage, stage_output
 from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
@@ -158,7 +158,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         torch.set_num_threads(cfg.threads or max(1, len(os.sched_getaffinity(0)) // ranks.world))
     identity = _identity(cfg, name, [Path(d) for d in datasets])
     stage_cm = stage_output(out, "dope_model", overwrite=overwrite, config=identity) if ranks.main else nullcontext()
-    with stage_cm as stage:
+    with stage_cm as stage, (discard_on_bad_input(stage, "checkpoint.pt") if ranks.main else nullcontext()):
         ckpt_path = stage.path / "checkpoint.pt" if ranks.main else None
         # rank 0's checkpoint on every rank: the others may run on machines without the output directory
         state = share(load_checkpoint(ckpt_path) if ranks.main and ckpt_path.is_file() else None, ranks)

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from n2d_common.errors import ContractError
-from n2d_common.formats.session import read_session
+from n2d_common.formats.session import TRUTH_DIR, read_session
 from n2d_common.frames import inv_T, transform_points
 from n2d_common.images import read_png
 
@@ -128,6 +128,15 @@ def load_session(directory: str | Path, *, holdout_every: int = 8, min_views: in
             raise ContractError(f"{view.image.name} has no valid camera pose in transforms.json",
                                 "re-run the capture processing; every view needs a transform_matrix")
         image, mask = read_png(view.image), read_png(view.mask)
+        for name, img in ((view.image, image), (view.mask, mask)):
+            if img.shape[:2] != (session.height, session.width) or img.dtype != np.uint8:
+                raise ContractError(f"{name.relative_to(directory)} is {img.shape[1]}x{img.shape[0]} "
+                                    f"({img.dtype}), the session's camera {session.width}x{session.height} (uint8)",
+                                    "the session is damaged: capture it again")
+        if image.ndim != 3 or image.shape[2] < 3:
+            raise ContractError(f"{view.image.relative_to(directory)} is not a colour image",
+                                "the session is damaged: capture it again")
+        image = image[..., :3]
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
         fraction = mask.mean()
         if not MIN_MASK_FRACTION <= fraction <= MAX_MASK_FRACTION:
@@ -141,16 +150,33 @@ def load_session(directory: str | Path, *, holdout_every: int = 8, min_views: in
     K, rgb, masks = _undistort(session.K, session.dist, np.stack(rgb), np.stack(masks))
     truth = None
     if all(v.truth is not None for v in session.views):
-        truth = _undistort(session.K, session.dist, np.stack([read_png(v.truth) for v in session.views]), masks)[1]
+        truth_rgb = [read_png(v.truth) for v in session.views]
+        if any(t.shape != rgb[0].shape or t.dtype != np.uint8 for t in truth_rgb):
+            raise ContractError(f"the truth images of {directory} do not match its images",
+                                f"the session is damaged: render it again, or delete {TRUTH_DIR}/")
+        truth = _undistort(session.K, session.dist, np.stack(truth_rgb), masks)[1]
     names = [str(v.image.relative_to(directory)) for v in session.views]
     placement = np.array([v.placement for v in session.views]) if session.placements > 1 else None
     views = Views(rgb, masks, K, np.stack(poses), names, truth, placement)
     heldout = np.zeros(len(views), dtype=bool)
     if holdout_every > 0:
         heldout[holdout_every // 2::holdout_every] = True
-    capture = json.loads((directory / "capture.json").read_text()) if (directory / "capture.json").is_file() else {}
-    radius = capture.get("board", {}).get("plate_diameter_m", 0.3) / 2
+    radius = _plate_diameter_m(directory / "capture.json") / 2
     return SessionData(directory, views.subset(~heldout), views.subset(heldout), float(radius))
+
+
+def _plate_diameter_m(path: Path) -> float:
+    """The plate diameter capture.json records (0.3 m for a session without one)."""
+    if not path.is_file():
+        return 0.3
+    try:
+        value = json.loads(path.read_text()).get("board", {}).get("plate_diameter_m", 0.3)
+        if isinstance(value, bool) or not 0 < float(value) < 100:
+            raise ValueError(value)
+        return float(value)
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        raise ContractError(f"{path} is malformed ({type(exc).__name__}: {exc})",
+                            "the session is damaged: capture it again, or restore capture.json") from None
 
 
 def _undistort(K: np.ndarray, dist: np.ndarray, rgb: np.ndarray, masks: np.ndarray):

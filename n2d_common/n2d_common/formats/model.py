@@ -14,6 +14,8 @@ import trimesh
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import cdist
 
+from n2d_common.errors import ContractError
+
 
 def diameter(vertices: np.ndarray) -> float:
     """Largest distance between two of the points (BOP's object diameter), in their unit.
@@ -37,21 +39,28 @@ def models_info(vertices: np.ndarray, symmetries: dict | None = None) -> dict:
     return info
 
 
+def _load_obj(path: Path) -> trimesh.Trimesh:
+    """trimesh's reading of an OBJ file; ContractError when it is missing or trimesh cannot parse it."""
+    try:
+        return trimesh.load(path, force="mesh", process=False)
+    except (OSError, ValueError, IndexError, KeyError, TypeError) as exc:
+        raise ContractError(f"cannot read the mesh {path} ({type(exc).__name__}: {exc})",
+                            "re-run n2d reconstruct for this model, or check the mesh's export") from None
+
+
 def read_model_mesh(directory: Path) -> trimesh.Trimesh:
     """The mesh of a model directory (metres, object frame), without its texture."""
-    mesh = trimesh.load(directory / "mesh.obj", force="mesh", process=False)
+    mesh = _load_obj(Path(directory) / "mesh.obj")
     return trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
 
 
 def read_textured_model(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(V x 3 vertices in metres, F x 3 faces, F x 3 x 2 per-corner UVs (v up, as in OBJ), H x W x 3 uint8 albedo)
     of a model directory's mesh.obj; a mesh without texture coordinates gets its material's plain colour."""
-    from n2d_common.errors import ContractError
-
     path = Path(directory) / "mesh.obj"
     if not path.is_file():
         raise ContractError(f"{directory} has no mesh.obj", "give a model directory (from n2d reconstruct)")
-    mesh = trimesh.load(path, force="mesh", process=False)
+    mesh = _load_obj(path)
     faces = np.asarray(mesh.faces, np.int64)
     if len(faces) == 0:
         raise ContractError(f"{path} has no faces", "check the model's export")
@@ -62,4 +71,9 @@ def read_textured_model(directory: Path) -> tuple[np.ndarray, np.ndarray, np.nda
         colour = np.asarray(getattr(material, "diffuse", [200, 200, 200, 255]), float)[:3]
         return (np.asarray(mesh.vertices, float), faces, np.zeros((len(faces), 3, 2)),
                 np.full((2, 2, 3), colour, np.uint8))
-    return np.asarray(mesh.vertices, float), faces, np.asarray(uv, float)[faces], np.asarray(image.convert("RGB"))
+    try:
+        albedo = np.asarray(image.convert("RGB"))
+    except OSError as exc:  # PIL decodes the texture only now
+        raise ContractError(f"cannot read the texture of {path} ({exc})",
+                            "re-run n2d reconstruct for this model, or restore its albedo.png") from None
+    return np.asarray(mesh.vertices, float), faces, np.asarray(uv, float)[faces], albedo

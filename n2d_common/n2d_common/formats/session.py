@@ -99,21 +99,63 @@ class Session:
 
 
 def read_session(directory: str | Path) -> Session:
-    """Open a complete capture session (refusing partial or foreign directories with a hint)."""
+    """Open a complete capture session (refusing partial or foreign directories with a hint).
+
+    Raises ContractError for a transforms.json that cannot be read, lacks a field or holds a value no camera has
+    (a focal length that is not a finite number > 0, a pose that is not a finite 4 x 4 matrix)."""
     directory = Path(directory)
     manifest = open_stage(directory, "capture_session")
-    t = json.loads((directory / "transforms.json").read_text())
-    K = np.array([[t["fl_x"], 0.0, t["cx"] - PIXEL_EDGE], [0.0, t["fl_y"], t["cy"] - PIXEL_EDGE], [0.0, 0.0, 1.0]])
-    dist = np.array([t.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
-    views = [SessionView(directory / f["file_path"], directory / f["mask_path"] if "mask_path" in f else None,
-                         np.asarray(f["transform_matrix"]) @ OPENGL_FROM_OPENCV if "transform_matrix" in f else None,
-                         _existing(directory / TRUTH_DIR / f["file_path"]), int(f.get(PLACEMENT_KEY, 0)))
-             for f in t["frames"]]
-    present = {v.placement for v in views}
-    if present != set(range(len(present))) or any(v.placement < 0 for v in views):
-        raise ContractError(f"{directory / 'transforms.json'} has frames of placements {sorted(present)}",
+    path = directory / "transforms.json"
+    try:
+        t = json.loads(path.read_text())
+        K = np.array([[_number(t, "fl_x"), 0.0, _number(t, "cx") - PIXEL_EDGE],
+                      [0.0, _number(t, "fl_y"), _number(t, "cy") - PIXEL_EDGE], [0.0, 0.0, 1.0]])
+        dist = np.array([_number(t, k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
+        width, height = _number(t, "w"), _number(t, "h")
+        if min(K[0, 0], K[1, 1]) <= 0 or width != int(width) or height != int(height) or min(width, height) < 1:
+            raise ValueError("focal lengths and image size must be positive (the size whole numbers)")
+        frames = t["frames"]
+        if not isinstance(frames, list) or not frames:
+            raise ValueError("frames is not a non-empty list")
+        views = [_view(directory, f) for f in frames]
+        present = {v.placement for v in views}
+    except OSError as exc:
+        raise ContractError(f"cannot read {path}: {exc.strerror or exc}", _DAMAGED) from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        what = f"has no {exc}" if isinstance(exc, KeyError) else f"is malformed ({exc})"
+        raise ContractError(f"{path} {what}", _DAMAGED) from None
+    if present != set(range(len(present))):
+        raise ContractError(f"{path} has frames of placements {sorted(present)}",
                             f"placements are numbered 0, 1, .. without gaps ({PLACEMENT_KEY})")
-    return Session(directory, K, dist, int(t["w"]), int(t["h"]), views, manifest)
+    return Session(directory, K, dist, int(width), int(height), views, manifest)
+
+
+_DAMAGED = "the session is damaged: capture it again, or restore transforms.json"
+
+
+def _number(t: dict, key: str, default: float | None = None) -> float:
+    """The finite number `t[key]` (ValueError naming it otherwise; KeyError when it is missing without a default)."""
+    value = t[key] if default is None else t.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+        raise ValueError(f"{key} is {value!r}, not a finite number")
+    return float(value)
+
+
+def _view(directory: Path, f: dict) -> SessionView:
+    image, mask = f["file_path"], f.get("mask_path")
+    if not isinstance(image, str) or not (mask is None or isinstance(mask, str)):
+        raise ValueError(f"a frame's file_path or mask_path is not a path: {image!r}, {mask!r}")
+    T = None
+    if "transform_matrix" in f:
+        T = np.asarray(f["transform_matrix"], dtype=float)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"the transform_matrix of {image} is not a finite 4 x 4 matrix")
+        T = T @ OPENGL_FROM_OPENCV
+    placement = f.get(PLACEMENT_KEY, 0)
+    if isinstance(placement, bool) or not isinstance(placement, int) or placement < 0:
+        raise ValueError(f"the {PLACEMENT_KEY} of {image} is {placement!r}, not a placement number 0, 1, ..")
+    return SessionView(directory / image, directory / mask if mask is not None else None, T,
+                       _existing(directory / TRUTH_DIR / image), placement)
 
 
 def _existing(path: Path) -> Path | None:
