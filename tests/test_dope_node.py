@@ -132,6 +132,13 @@ def _frames(dataset, scale: int = 1):
     return out
 
 
+def _camera(node):
+    """The test camera's image and camera_info publishers, and a QoS that keeps every message the test receives."""
+    return (node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS),
+            node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+
+
 def _low_thresholds(tmp_path):
     """The node's config file (expert settings are no parameters) with detection thresholds low enough that even
     the barely trained test model finds (meaningless) boxes."""
@@ -159,9 +166,7 @@ def test_dope_node_live(dope_model, ros_domain, tmp_path):
     args = {"models": str(model_dir), "max_rate_hz": str(RATE_HZ), "config": str(_low_thresholds(tmp_path))}
     with Launch(spec, args, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
-            image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
-            info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS)
-            every = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+            image_pub, info_pub, every = _camera(node)
             node.create_subscription(Detection3DArray, "/n2d/dope/detections", received["detections"].append, every)
             node.create_subscription(Image, "/n2d/dope/overlay", received["overlay"].append, every)
             node.create_subscription(Float64, "/n2d/dope/latency_ms", received["latency"].append, every)
@@ -280,9 +285,7 @@ def test_dope_node_refines_and_tracks_by_default(dope_model, ros_domain, tmp_pat
     args = {"models": str(model_dir), "max_rate_hz": str(RATE_HZ), "config": str(_low_thresholds(tmp_path))}
     with Launch(spec, args, log=logs.append) as launch:
         with background_node("test_camera", ros_domain) as node:
-            image_pub = node.create_publisher(Image, "/n2d/camera/image_raw", PUBLISH_QOS)
-            info_pub = node.create_publisher(CameraInfo, "/n2d/camera/camera_info", PUBLISH_QOS)
-            every = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+            image_pub, info_pub, every = _camera(node)
             node.create_subscription(Detection3DArray, "/n2d/dope/detections", received.append, every)
             node.create_subscription(MarkerArray, "/n2d/dope/markers", markers.append, every)
             _wait(lambda: image_pub.get_subscription_count(), 60, "dope_node", logs)
