@@ -1,7 +1,16 @@
 """Small helpers shared by the test files (import as `from helpers import ...`)."""
 
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -75,3 +84,58 @@ def list_parameters(node, node_name: str, timeout_s: float = 30.0) -> list[str]:
         return sorted(set(result.names) - ROS_OWN_PARAMETERS)
     finally:
         node.destroy_client(client)
+
+
+ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+"""No telemetry; the test cluster's own token (nodes and driver), whatever ~/.ray holds."""
+RAY_START = ("import ray._private.services as s; s.resolve_ip_for_localhost = lambda host: host; "
+             "from ray.scripts.scripts import main; main()")
+"""`ray start` that keeps --node-ip-address=127.0.0.1 (Ray swaps loopback for the machine's address on a
+multi-node cluster): every node on loopback only."""
+
+
+def free_port() -> int:
+    """A TCP port of loopback free now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class LocalCluster:
+    """Ray nodes of this machine on loopback, each `ray start` in a process group of its own (so one node is
+    killed without touching any other Ray of the machine), sharing a short temp dir."""
+
+    def __init__(self):
+        self.temp = tempfile.mkdtemp(prefix="n2dray", dir="/tmp")
+        self.groups: dict[str, int] = {}
+        self.port = 0
+
+    def start(self, name: str, head: bool) -> None:
+        args = [sys.executable, "-c", RAY_START, "start", "--node-ip-address=127.0.0.1", "--num-cpus=1",
+                "--disable-usage-stats", f"--temp-dir={self.temp}"]
+        if head:
+            self.port = free_port()
+            args += ["--head", f"--port={self.port}", "--include-dashboard=false",
+                     f"--ray-client-server-port={free_port()}"]
+        else:
+            args += [f"--address=127.0.0.1:{self.port}"]
+        log = Path(self.temp) / f"{name}.log"
+        with log.open("w") as f:  # a file, not a pipe: the node's daemons keep it open
+            proc = subprocess.Popen(args, env=os.environ | ENV, start_new_session=True, stdout=f, stderr=f)
+        self.groups[name] = proc.pid
+        assert proc.wait(timeout=60) == 0, log.read_text()[-3000:]
+
+    def kill(self, name: str) -> None:
+        try:
+            os.killpg(self.groups.pop(name), signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+    def stop(self) -> None:
+        for name in list(self.groups):
+            self.kill(name)
+        shutil.rmtree(self.temp, ignore_errors=True)
+
+    @property
+    def address(self) -> str:
+        return f"127.0.0.1:{self.port}"

@@ -5,18 +5,15 @@ run's; bad clusters give clear errors and no dataset that looks complete."""
 import errno
 import hashlib
 import os
-import secrets
-import shutil
-import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
 
 import pytest
+from helpers import ENV, LocalCluster, free_port
 
 from n2d_common.cluster import Node
 from n2d_common.config import load_config
@@ -30,68 +27,16 @@ from n2d_sim.objects import sample_object_dir
 MODELS = [sample_object_dir("box")]
 SMALL = ["frames=6", "camera.width=160", "camera.height=120", "camera.focal_px=150", "render.engine=raster",
          "scene.distractors=[1,2]", "workers=2"]
-ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
-"""No telemetry; the test cluster's own token (nodes and driver), whatever ~/.ray holds."""
-RAY_START = ("import ray._private.services as s; s.resolve_ip_for_localhost = lambda host: host; "
-             "from ray.scripts.scripts import main; main()")
-"""`ray start` that keeps --node-ip-address=127.0.0.1 (Ray swaps loopback for the machine's address on a
-multi-node cluster): every node on loopback only."""
 
 
 def small_config(*more: str) -> DatasetConfig:
     return load_config(DatasetConfig, overrides=SMALL + list(more))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def hashes(root: Path) -> dict[str, str]:
     """sha256 of every file of a dataset but its manifest (which holds the wall time)."""
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(root.rglob("*")) if p.is_file() and p.name != "n2d.json"}
-
-
-class LocalCluster:
-    """Ray nodes of this machine on loopback, each `ray start` in a process group of its own (so one node is
-    killed without touching any other Ray of the machine), sharing a short temp dir."""
-
-    def __init__(self):
-        self.temp = tempfile.mkdtemp(prefix="n2dray", dir="/tmp")
-        self.groups: dict[str, int] = {}
-        self.port = 0
-
-    def start(self, name: str, head: bool) -> None:
-        args = [sys.executable, "-c", RAY_START, "start", "--node-ip-address=127.0.0.1", "--num-cpus=1",
-                "--disable-usage-stats", f"--temp-dir={self.temp}"]
-        if head:
-            self.port = _free_port()
-            args += ["--head", f"--port={self.port}", "--include-dashboard=false",
-                     f"--ray-client-server-port={_free_port()}"]
-        else:
-            args += [f"--address=127.0.0.1:{self.port}"]
-        log = Path(self.temp) / f"{name}.log"
-        with log.open("w") as f:  # a file, not a pipe: the node's daemons keep it open
-            proc = subprocess.Popen(args, env=os.environ | ENV, start_new_session=True, stdout=f, stderr=f)
-        self.groups[name] = proc.pid
-        assert proc.wait(timeout=60) == 0, log.read_text()[-3000:]
-
-    def kill(self, name: str) -> None:
-        try:
-            os.killpg(self.groups.pop(name), signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-
-    def stop(self) -> None:
-        for name in list(self.groups):
-            self.kill(name)
-        shutil.rmtree(self.temp, ignore_errors=True)
-
-    @property
-    def address(self) -> str:
-        return f"127.0.0.1:{self.port}"
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +95,7 @@ def test_killed_worker_and_head_resume_to_the_same_dataset(plain, tmp_path, monk
 
 def test_unreachable_cluster_is_named(tmp_path):
     out = tmp_path / "ds"
-    address = f"127.0.0.1:{_free_port()}"
+    address = f"127.0.0.1:{free_port()}"
     t0 = time.monotonic()
     with pytest.raises(N2DError, match=f"cannot reach the Ray cluster at {address}"):
         generate_dataset(MODELS, out, small_config(), cluster=address)

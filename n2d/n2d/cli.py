@@ -371,6 +371,36 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_pipeline(args) -> int:
+    import threading
+
+    from n2d.objects import parse_objects, run_objects
+    from n2d.pipeline import PipelineConfig
+
+    cfg = _config(PipelineConfig, args)
+    objects = parse_objects(args.objects)
+    stages = [s.strip() for s in args.stages.split(",")] if args.stages else None
+    bars: dict = {}
+    cancel = threading.Event()
+    try:
+        results = run_objects(args.run_dir, objects, cfg, stages=stages, cluster=args.cluster, cancel=cancel,
+                              progress_for=lambda name: bars.setdefault(name, _progress_bar(name)))
+    except KeyboardInterrupt:
+        cancel.set()
+        raise
+    _close_progress_bars()
+    for r in results:
+        if r["ok"]:
+            print(f"pipeline: {r['name']}: {', '.join(r['done']) or 'nothing'} done, in {r['run_dir']}/")
+        else:
+            print(f"pipeline: {r['name']}: failed: {r['error']}", file=sys.stderr)
+            print(f"  hint: {r['hint']}", file=sys.stderr)
+    failed = [r["name"] for r in results if not r["ok"]]
+    print(f"pipeline: {len(results) - len(failed)} of {len(results)} objects finished"
+          + (f"; failed: {', '.join(failed)} (fix it, then the same command resumes every object)" if failed else ""))
+    return 2 if failed else 0
+
+
 def cmd_evaluate(args) -> int:
     from n2d_common.contracts import read_manifest
     from n2d_dope.config import RefineConfig
@@ -571,6 +601,25 @@ def build_parser() -> argparse.ArgumentParser:
                    "training of another config")
     _add_config_options(p)
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("pipeline", help="run the pipeline of several objects, here or on a Ray cluster",
+                       description="Run the stages after the captures (reconstruct, dataset, test_dataset, train, "
+                       "evaluate) for each object of --objects into RUN_DIR/NAME, one after another on this "
+                       "machine or one object per cluster node at a time with --cluster. An object is a run "
+                       "directory already in RUN_DIR (captured with the Pipeline action) or NAME=SOURCE: a capture "
+                       "session or a model directory, copied in as its capture/ or model/. One object's failure is "
+                       "reported and the others finish (exit code 2); the same command resumes each object. Config "
+                       "values (--config, --set) are those of the Pipeline action's config, the same for every "
+                       "object. With --cluster, RUN_DIR must be on a filesystem every node mounts at the same path.")
+    p.add_argument("run_dir", type=Path, help="folder of the objects' run directories (RUN_DIR/NAME)")
+    p.add_argument("--objects", required=True, metavar="NAME[=SOURCE],...", help="the objects, comma-separated, "
+                   "e.g. mug,box=models/box")
+    p.add_argument("--stages", metavar="STAGE,...", help="run only these stages (default: every stage after the "
+                   "captures)")
+    p.add_argument("--cluster", metavar="ADDRESS", help="run the objects as tasks on a Ray cluster: "
+                   "ray://HEAD:10001, HEAD:6379, auto or local (as n2d dataset --cluster)")
+    _add_config_options(p)
+    p.set_defaults(func=cmd_pipeline)
 
     p = sub.add_parser("evaluate", help="measure a DOPE model: ADD / ADD-S accuracy and AUC on a test set",
                        description="Run the model on a test set it was not trained on and compare with the ground "

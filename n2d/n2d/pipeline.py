@@ -51,6 +51,12 @@ OUTPUTS = {EMPTY_PLATE: "capture", "capture": "capture", "test_capture": "captur
 NEEDS = {"capture": (), "test_capture": (), "reconstruct": ("capture",), "dataset": ("reconstruct",),
          "test_dataset": ("reconstruct",), "train": ("dataset",), "evaluate": ("train",)}
 """The stages whose output each stage reads."""
+CAPTURE_STAGES = (EMPTY_PLATE, "capture", "test_capture")
+"""The stages that drive the turntable and the camera (the rest run anywhere, e.g. on a cluster)."""
+RECONSTRUCT_SUMMARY = ("model", "heldout", "geometry", "timings_s")
+"""What run.json keeps of a reconstruction's report."""
+TRAIN_SUMMARY = ("backbone", "parameters", "steps", "train_frames", "train_seconds", "held_out_loss", "device")
+"""What run.json keeps of a training's summary."""
 WEIGHTS = {EMPTY_PLATE: 2.0, "capture": 3.0, "test_capture": 1.0, "reconstruct": 4.0, "dataset": 10.0,
            "test_dataset": 1.0, "train": 10.0, "evaluate": 0.5}
 """Typical share of a run's time (the default demo on 2 cores), for the overall progress."""
@@ -183,7 +189,7 @@ class RunLayout:
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 
 
-def _run_config(object_name: str, cfg: PipelineConfig) -> dict:
+def run_config(object_name: str, cfg: PipelineConfig) -> dict:
     """What a run's manifest records, and what a later call must repeat to continue it."""
     return {"object_name": object_name, **to_dict(cfg)}
 
@@ -208,20 +214,20 @@ def check_run_dir(root: Path, object_name: str, cfg: PipelineConfig, overwrite: 
         raise ContractError(f"{root} exists and is not an n2d run directory", "choose another run directory")
     if manifest is not None and manifest["kind"] != "run":
         raise ContractError(f"{root} holds a {manifest['kind'].replace('_', ' ')}", "choose another run directory")
-    if manifest is not None and not overwrite and manifest.get("config") != _run_config(object_name, cfg):
+    if manifest is not None and not overwrite and manifest.get("config") != run_config(object_name, cfg):
         raise ContractError(f"{root} holds a run of another object or config",
                             "use the same object and config to resume it, another run directory, or overwrite")
     return manifest
 
 
-def _read_status(layout: RunLayout, object_name: str, fresh: bool) -> dict:
+def read_status(layout: RunLayout, object_name: str, fresh: bool) -> dict:
     """The run's run.json, or an empty status for a new run (or one about to be overwritten)."""
     if layout.status_file.is_file() and not fresh:
         return json.loads(layout.status_file.read_text())
     return {"object_name": object_name, "stages": {}}
 
 
-def _order(requested: list[str] | None, cfg: PipelineConfig) -> list[str]:
+def stage_order(requested: list[str] | None, cfg: PipelineConfig) -> list[str]:
     """The stages to run, in pipeline order; ConfigError for unknown names."""
     if not requested:
         return cfg.stages()
@@ -235,6 +241,34 @@ def _order(requested: list[str] | None, cfg: PipelineConfig) -> list[str]:
     return [s for s in known if s in requested]
 
 
+def needs(stage: str, cfg: PipelineConfig) -> tuple[str, ...]:
+    """The stages whose output `stage` reads under `cfg` (the evaluation: also the test sets `cfg` has)."""
+    if stage == "evaluate":
+        return NEEDS[stage] + tuple(s for s in ("test_dataset", "test_capture") if s in cfg.stages())
+    return NEEDS.get(stage, ())
+
+
+def check_stages(layout: RunLayout, cfg: PipelineConfig, order: list[str], status: dict,
+                 given: tuple[str, ...] = ()) -> None:
+    """ContractError when a stage of `order` that is to run reads an output that neither runs before it nor is
+    finished (nor is among `given`, outputs that will be put in place before the run), or when the object sweep
+    lacks its empty-plate sweep. A stage already finished, or given, does not run: its inputs are not needed."""
+    for stage in order:
+        if stage in given or layout.done(stage, status):
+            continue
+        missing = [need for need in needs(stage, cfg)
+                   if need not in order and need not in given and not layout.done(need, status)]
+        if missing:
+            raise ContractError(f"stage {stage} needs the output of {', '.join(missing)}, which is not finished",
+                                f"run {', '.join(missing)} first (or the whole pipeline)"
+                                + ("; for no turntable test set, set test_views: 0" if "test_capture" in missing
+                                   else ""))
+    if ("capture" in order and cfg.require_empty_plate and not layout.done("capture", status)
+            and not layout.done(EMPTY_PLATE, status)):
+        raise ContractError("no empty-plate sweep is recorded for this run (the masks' background reference)",
+                            "clear the plate and run the empty_plate stage first, or set require_empty_plate: false")
+
+
 def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, runner: StageRunner, *,
                  stages: list[str] | None = None, overwrite: bool = False, progress: ProgressFn = no_progress,
                  cancel: threading.Event | None = None) -> dict:
@@ -245,24 +279,16 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
     """
     cancel = cancel or threading.Event()
     layout = RunLayout(Path(run_dir).absolute())
-    order = _order(stages, cfg)
+    order = stage_order(stages, cfg)
     manifest = check_run_dir(layout.root, object_name, cfg, overwrite)
-    status = _read_status(layout, object_name, fresh=overwrite)
+    status = read_status(layout, object_name, fresh=overwrite)
     # every check before anything is written: a refused call leaves the run directory as it was
-    for stage in order:
-        missing = [need for need in NEEDS.get(stage, ()) if need not in order and not layout.done(need, status)]
-        if missing:
-            raise ContractError(f"stage {stage} needs the output of {', '.join(missing)}, which is not finished",
-                                f"run {', '.join(missing)} first (or the whole pipeline)")
-    if ("capture" in order and cfg.require_empty_plate and not layout.done("capture", status)
-            and not layout.done(EMPTY_PLATE, status)):
-        raise ContractError("no empty-plate sweep is recorded for this run (the masks' background reference)",
-                            "clear the plate and run the empty_plate stage first, or set require_empty_plate: false")
+    check_stages(layout, cfg, order, status)
     if manifest is not None and overwrite:
         shutil.rmtree(layout.root)
     layout.root.mkdir(parents=True, exist_ok=True)
     if read_manifest(layout.root) is None:
-        write_manifest(layout.root, "run", config=_run_config(object_name, cfg), complete=False)
+        write_manifest(layout.root, "run", config=run_config(object_name, cfg), complete=False)
     total = sum(WEIGHTS[s] for s in order)
     before = 0.0
     for index, stage in enumerate(order, 1):
@@ -290,8 +316,8 @@ def run_pipeline(run_dir: str | Path, object_name: str, cfg: PipelineConfig, run
                                        **({"output": str(layout.output(stage))} if stage in OUTPUTS else {})}
             atomic_write_json(layout.status_file, status)
         before += WEIGHTS[stage]
-    if not stages and all(layout.done(s, status) for s in cfg.stages()):
-        write_manifest(layout.root, "run", config=_run_config(object_name, cfg),
+    if all(layout.done(s, status) for s in cfg.stages()):
+        write_manifest(layout.root, "run", config=run_config(object_name, cfg),
                        extra={"seconds": {s: v["seconds"] for s, v in status["stages"].items()},
                               "evaluation": status["stages"].get("evaluate", {}).get("summary", {})})
     return status

@@ -15,7 +15,7 @@ from pathlib import Path
 import yaml
 from rclpy.node import Node
 
-from n2d.pipeline import evaluate_run
+from n2d.pipeline import RECONSTRUCT_SUMMARY, TRAIN_SUMMARY, evaluate_run
 from n2d_common.progress import Progress, ProgressFn
 from n2d_common.ros import SafeActionClient, call_action
 from n2d_common.worker import run_in_worker
@@ -66,7 +66,7 @@ class ActionStages:
         goal = Reconstruct.Goal(session_dir=str(session_dir), model_dir=str(model_dir),
                                 method=overrides.get("method", ""), config_yaml=_yaml(overrides), resume=True)
         report = json.loads(self._call(self.reconstruct_client, goal, "reconstruct_node", progress, cancel).report_json)
-        return {k: report[k] for k in ("model", "heldout", "geometry", "timings_s") if k in report}
+        return {k: report[k] for k in RECONSTRUCT_SUMMARY if k in report}
 
     def dataset(self, model_dir: Path, dataset_dir: Path, frames: int, seed: int, overrides: dict, *,
                 progress: ProgressFn, cancel: threading.Event) -> dict:
@@ -79,8 +79,7 @@ class ActionStages:
         goal = Train.Goal(dataset_dir=str(dataset_dir), model_dir=str(dope_dir), object_name=object_name,
                           preset=preset, config_yaml=_yaml(overrides), resume=True)
         summary = json.loads(self._call(self.train_client, goal, "train_node", progress, cancel).summary_json)
-        return {k: summary[k] for k in ("backbone", "parameters", "steps", "train_frames", "train_seconds",
-                                        "held_out_loss", "device") if k in summary}
+        return {k: summary[k] for k in TRAIN_SUMMARY if k in summary}
 
     def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], *, progress: ProgressFn,
                  cancel: threading.Event) -> dict:
