@@ -36,16 +36,18 @@ def _worker(fn: Callable, kwargs: dict, messages: mp.Queue, cancel) -> None:
 
 
 def run_in_worker(fn: Callable, kwargs: dict, *, progress: ProgressFn = no_progress,
-                  cancel: threading.Event | None = None) -> Any:
+                  cancel: threading.Event | None = None, children: bool = False) -> Any:
     """Call `fn(**kwargs, progress=..., cancel=...)` in a new process and return its result.
 
     `fn` must be importable (a module-level function). Its progress reports are forwarded to
     `progress`; setting `cancel` sets the job's own cancel event. N2DError subclasses raised by the job
     are raised here with their message and hint; a process that dies without a word raises N2DError.
+    `children`: the job starts processes of its own (a daemonic process may not; the worker still dies with its
+    parent).
     """
     ctx = mp.get_context("spawn")
     messages, job_cancel = ctx.Queue(), ctx.Event()
-    proc = ctx.Process(target=_worker, args=(fn, kwargs, messages, job_cancel), daemon=True)
+    proc = ctx.Process(target=_worker, args=(fn, kwargs, messages, job_cancel), daemon=not children)
     proc.start()
     cancelled_at = None
     try:

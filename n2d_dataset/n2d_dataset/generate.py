@@ -132,7 +132,7 @@ def generate_dataset(model_dirs: list[str | Path], out: str | Path, cfg: Dataset
         summary = {"frames": cfg.frames, "instances": totals["instances"], "resumed_frames": done,
                    "wall_s": round(time.perf_counter() - t_start, 2), "phase_seconds": totals["seconds"],
                    "worker_rss_mb": totals["worker_rss_mb"],
-                   "models": {m.name: m.obj_id for m in models}}
+                   "models": {m.name: m.obj_id for m in models}, "cluster": cluster or None}
         stage.finish(config=to_dict(cfg), inputs={m.name: m.directory for m in models}, extra={
             "layout": "BOP train_pbr chunks; DOPE JSON next to each rgb image",
             "units": {"bop": "mm", "dope": "cm", "depth_scale_mm": writer.DEPTH_SCALE},

@@ -235,6 +235,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         net.eval().to(memory_format=torch.contiguous_format)
         summary = _finish(stage.path, net, info, name, train_frames, held_frames, cfg, pos, total, device, progress)
         summary["parameters"] = parameter_count(net)
+        summary["processes"] = ranks.world
         atomic_write_json(stage.path / "training.json", summary)
         inputs = {"dataset" if i == 0 else f"dataset_{i + 1}": Path(d) for i, d in enumerate(datasets)}
         if cfg.init_model:

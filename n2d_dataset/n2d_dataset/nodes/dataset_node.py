@@ -1,7 +1,8 @@
 """dataset_node: the `generate_dataset` action: model directories -> annotated, domain-randomised dataset.
 
 The frames are rendered by worker processes (one bpy each); this node only forwards their progress as
-action feedback (frames done, ETA) and their cancel. A cancelled or failed goal keeps every finished
+action feedback (frames done, ETA) and their cancel; with the `cluster` parameter Ray actors on a cluster
+render them instead (n2d_dataset/cluster.py). A cancelled or failed goal keeps every finished
 frame; a later goal for the same dataset with `resume: true` renders only the missing ones. Parameters
 are the fields of `DatasetConfig` (a goal's frames, workers, seed and config_yaml override them).
 """
@@ -28,11 +29,14 @@ class DatasetNodeConfig:
     ROS_PARAMETERS = ("dataset.frames", "dataset.seed", "dataset.workers", "dataset.photoreal_frames",
                       "dataset.camera.width", "dataset.camera.height", "dataset.camera.focal_px",
                       "dataset.scene.distractors", "dataset.scene.in_hand", "dataset.render.engine",
-                      "dataset.render.samples", "dataset.render.device", "dataset.render.threads")
+                      "dataset.render.samples", "dataset.render.device", "dataset.render.threads", "cluster")
     """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
 
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """Defaults of every dataset."""
+    cluster: str = ""
+    """Render every goal's frames on this Ray cluster: ray://HEAD:10001, HEAD:6379, auto or local (empty: local
+    worker processes); the frames are written on this machine."""
 
 
 def _feedback(p: Progress) -> GenerateDataset.Feedback:
@@ -63,7 +67,8 @@ class DatasetNode(Node):
         # generate_dataset runs its render workers as processes; this thread only waits for them.
         result.dataset_dir = goal.dataset_dir
         summary = generate_dataset(list(goal.model_dirs), goal.dataset_dir, self._goal_config(goal),
-                                   overwrite=not goal.resume, progress=progress, cancel=cancel)
+                                   overwrite=not goal.resume, progress=progress, cancel=cancel,
+                                   cluster=self.cfg.cluster or None)
         result.frames_done = summary["frames"]
         result.message = json.dumps(summary)
 

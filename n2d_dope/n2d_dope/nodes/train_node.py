@@ -1,8 +1,9 @@
 """train_node: the `train` action: annotated dataset -> trained DOPE network exported to ONNX (a DOPE model directory).
 
 Training runs in a worker process (torch takes the cores; the node stays responsive, a crash cannot take it
-down); its progress becomes the action feedback (stage, step, loss, ETA). Cancel makes the job save its
-checkpoint and stop; a later goal with `resume: true` and the same config continues at the exact batch.
+down); its progress becomes the action feedback (stage, step, loss, ETA). With the `ddp` parameter the worker
+trains in that many processes (n2d_dope/distributed.py). Cancel makes the job save its checkpoint and stop; a
+later goal with `resume: true` and the same config continues at the exact batch.
 Parameters are the fields of `TrainConfig` (a goal's `preset` replaces them as the base, keeping the node's
 device and threads; its `config_yaml` overrides them).
 """
@@ -32,17 +33,24 @@ class TrainNodeConfig:
 
     ROS_PARAMETERS = ("train.backbone", "train.input_size", "train.init_model", "train.epochs", "train.max_minutes",
                       "train.batch_size", "train.lr", "train.symmetry_aware", "train.holdout", "train.device",
-                      "train.threads", "train.seed", "train.int8")
+                      "train.threads", "train.seed", "train.int8", "ddp")
     """The user tier: these become ROS parameters; every other field is set in the `config_file` YAML."""
 
     train: TrainConfig = field(default_factory=TrainConfig)
     """Defaults of every training run."""
+    ddp: int = 0
+    """Train data-parallel in this many processes of this machine (torch.distributed: gloo on CPUs, NCCL on GPUs;
+    0 or 1: one process)."""
+
+    def __post_init__(self):
+        if self.ddp < 0:
+            raise ValueError("ddp must be >= 0")
 
 
-def _job(dataset_dir: str, model_dir: str, config: dict, object_name: str | None, overwrite: bool, progress,
-         cancel) -> dict:
+def _job(dataset_dir: str, model_dir: str, config: dict, object_name: str | None, overwrite: bool, ddp: int,
+         progress, cancel) -> dict:
     return train(dataset_dir, model_dir, from_dict(TrainConfig, config), object_name=object_name,
-                 overwrite=overwrite, progress=progress, cancel=cancel)
+                 overwrite=overwrite, progress=progress, cancel=cancel, ddp=ddp)
 
 
 def _feedback(p: Progress) -> Train.Feedback:
@@ -71,8 +79,9 @@ class TrainNode(Node):
         result.model_dir = goal.model_dir
         summary = run_in_worker(_job, {"dataset_dir": goal.dataset_dir, "model_dir": goal.model_dir,
                                        "config": to_dict(self._goal_config(goal)),
-                                       "object_name": goal.object_name or None, "overwrite": not goal.resume},
-                                progress=progress, cancel=cancel)
+                                       "object_name": goal.object_name or None, "overwrite": not goal.resume,
+                                       "ddp": self.cfg.ddp},
+                                progress=progress, cancel=cancel, children=self.cfg.ddp > 1)
         result.summary_json = json.dumps(summary)
 
     def destroy_node(self) -> None:
