@@ -1,8 +1,9 @@
 """`n2d pipeline` for a list of objects: on a real local Ray cluster (a head and a worker node started with `ray
 start` on loopback) two objects run their dataset stage as tasks, one of them with a broken model: the other
-finishes with its dataset, the broken one is reported with its error; the same command again (without the cluster,
-one object after another) keeps the finished dataset and reports the same error. Bad input (a repeated or unknown
-object, an unreachable cluster) is one error line with a hint and writes nothing."""
+finishes with its dataset, the broken one is reported with its error. The same command again (without the
+cluster, one object after another) keeps the finished dataset and reports the same error, and once the broken
+model is fixed finishes it. Bad input (a repeated or unknown object, an unreachable cluster) is one error line
+with a hint and writes nothing."""
 
 import json
 import os
@@ -75,6 +76,15 @@ def test_objects_on_a_cluster_fail_alone_and_resume(inputs, tmp_path, monkeypatc
     assert again.returncode == 2 and "has no mesh.obj" in again.stderr, (again.stdout + again.stderr)[-3000:]
     assert json.loads((runs / "box" / "run.json").read_text()) == status
     assert read_manifest(runs / "box" / "dataset") == dataset
+    assert f"{runs / 'broken' / 'model'} is the copy of" in again.stderr
+
+    # the source fixed and its copy deleted, as the hint says: the broken object finishes, the other is untouched
+    shutil.copy(BOX / "mesh.obj", tmp_path / "broken_model" / "mesh.obj")
+    shutil.rmtree(runs / "broken" / "model")
+    fixed = subprocess.run(_pipeline(runs, objects, config), capture_output=True, text=True, timeout=120)
+    assert fixed.returncode == 0 and "2 of 2 objects finished" in fixed.stdout, (fixed.stdout + fixed.stderr)[-3000:]
+    assert open_stage(runs / "broken" / "dataset", "dataset")["complete"]
+    assert json.loads((runs / "box" / "run.json").read_text()) == status
 
 
 @pytest.mark.parametrize("objects, words", [

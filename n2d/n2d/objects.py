@@ -145,7 +145,10 @@ def run_isolated(root: Path, obj: ObjectRun, cfg: PipelineConfig, order: list[st
     except Cancelled:
         raise
     except N2DError as exc:
-        return base | {"ok": False, "error": exc.message, "hint": exc.hint}
+        copied = RunLayout(root / obj.name).output(obj.given) if obj.given else None
+        again = (f"; {copied} is the copy of {obj.source}: fix the source, then delete the copy to take it in again"
+                 if copied is not None and copied.is_dir() else "")
+        return base | {"ok": False, "error": exc.message, "hint": exc.hint + again}
     except Exception as exc:  # an object's failure of any kind must not stop the others
         return base | {"ok": False, "error": f"{type(exc).__name__}: {exc}", "hint": "this is a bug in n2d; please "
                        "report it with the object's run directory"}
