@@ -120,3 +120,34 @@ def test_capture_stages_are_refused_and_nothing_is_written(tmp_path, capsys):
     (tmp_path / "one" / "IMG_0001.jpg").write_bytes(b"")
     assert main(["pipeline", str(tmp_path), "--objects", f"one={BOX}"]) == 2  # a foreign directory in the way
     assert "object one: " in capsys.readouterr().err and os.listdir(tmp_path / "one") == ["IMG_0001.jpg"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_an_object_from_its_capture_session_runs_every_stage_in_this_process(tmp_path, capsys):
+    """The stages after the captures as library calls, from a session to an evaluated DOPE model: the one path
+    `LibraryStages` takes that the cluster test (dataset only) does not."""
+    from n2d_sim.session import render_session, small_world
+
+    session = tmp_path / "session"
+    render_session(session, small_world("box", 160, 120), views=12)
+    small = {"camera": {"width": 160, "height": 120, "focal_px": 150.0}, "render": {"engine": "raster"},
+             "workers": 1, "scene": {"distractors": [0, 1]}}
+    config = tmp_path / "all.yaml"
+    config.write_text(yaml.safe_dump({
+        "frames": 4, "test_frames": 2, "test_views": 0, "preset": "tiny", "precisions": ["fp32"],
+        "reconstruct": {"mesh": {"voxel_m": 0.004, "target_faces": 2000}, "texture": {"size_px": 64},
+                        "refine": {"enabled": False}},
+        "dataset": small, "test_dataset": small, "train": {"epochs": 2}}))
+    runs = tmp_path / "runs"
+    assert main(["pipeline", str(runs), "--objects", f"box={session}", "--config", str(config)]) == 0, \
+        capsys.readouterr().err[-3000:]
+    assert "1 of 1 objects finished" in capsys.readouterr().out
+    status = json.loads((runs / "box" / "run.json").read_text())
+    assert list(status["stages"]) == ["reconstruct", "dataset", "test_dataset", "train", "evaluate"]
+    for out, kind in (("model", "model"), ("dataset", "dataset"), ("dataset_test", "dataset"),
+                        ("dope", "dope_model")):
+        assert open_stage(runs / "box" / out, kind)["complete"], out
+    assert (runs / "box" / "dope" / "model.onnx").is_file()
+    scores = status["stages"]["evaluate"]["summary"]["synthetic"]["fp32"]  # scored, not how well: 2 epochs
+    assert scores["images"] == 2 and scores["instances"] >= 1 and 0.0 <= scores["adds_accuracy_10pct"] <= 1.0
