@@ -3,7 +3,11 @@
 It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and
 acts as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate
 sweep, puts the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset,
-training, evaluation, one progress display over all of them. Then the live check: `dope_node` runs the
+training, evaluation, one progress display over all of them. With `pipeline.placements: 2` the capture stage
+runs as a goal of its own: when it asks for the object to be turned over (capture_node's `turn_over`
+feedback) the demo turns the simulated object over (`sim/turn_over`) and calls `capture/continue`; once both
+sweeps are taken it puts the object back as it first stood for the test sweep and the live check, and the
+reconstruction fuses the two placements into a closed model. Then the live check: `dope_node` runs the
 new model on the simulated camera while the plate turns to angles no sweep used, and each published
 pose is scored against the simulator's ground truth (ADD / ADD-S with the reconstructed model's
 points). Everything lands in one run directory; Ctrl-C at any stage and the same command continues
@@ -124,14 +128,17 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
             raise DeviceError(_startup_failure(launch, logs))
         config_yaml = yaml.safe_dump(to_dict(cfg.pipeline))
 
-        def pipeline(stages: list[str], start: float, share: float, overwrite: bool):
-            """Send a Pipeline goal; its progress fills [start, start + share] of the demo's."""
+        def pipeline(stages: list[str], start: float, share: float, overwrite: bool, watch=None):
+            """Send a Pipeline goal; its progress fills [start, start + share] of the demo's; `watch` sees each
+            feedback too."""
             goal = Pipeline.Goal(object_name=name, run_dir=str(out), config_yaml=config_yaml, stages=stages,
                                  overwrite=overwrite)
 
             def feedback(fb) -> None:
                 progress(Progress(start + share * fb.progress, f"{fb.stage_index}/{fb.stages_total} {fb.stage}",
                                   fb.eta_s, fb.message))
+                if watch is not None:
+                    watch(fb)
 
             return call_action(client, goal, what="pipeline", feedback=feedback)
 
@@ -141,7 +148,14 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
             _set_object_visible(node, False, cfg.startup_timeout_s)
             pipeline([EMPTY_PLATE], 0.0, 0.05, overwrite)
             _set_object_visible(node, True, 30.0)
-        status = json.loads(pipeline([], 0.05, 0.9, overwrite and not empty_sweep).summary_json)
+        fresh = overwrite and not empty_sweep
+        start = 0.05
+        if cfg.pipeline.placements > 1:
+            with _TurnOver(node, cfg.startup_timeout_s) as turner:
+                pipeline(["capture"], start, 0.1, fresh, watch=turner.watch)
+            _sim_switch(node, "turn_over", False, 60.0)  # as it first stood: the model's frame
+            fresh, start = False, 0.15
+        status = json.loads(pipeline([], start, 0.95 - start, fresh).summary_json)
         live = None
         if cfg.live_views:
             progress(Progress(0.95, "live", message="dope_node on the simulated camera"))
@@ -164,16 +178,71 @@ def _startup_failure(launch, logs: list[str]) -> str:
 
 def _set_object_visible(node, visible: bool, timeout_s: float) -> None:
     """Lift the simulated object off the plate or put it back (the sim camera's service)."""
-    from std_srvs.srv import SetBool
+    _sim_switch(node, "set_object_visible", visible, timeout_s)
 
+
+def _call(node, srv_type, name: str, request, timeout_s: float):
+    """Call the service `name` once (waiting `timeout_s` for it to appear); DeviceError when it fails."""
     from n2d_common.ros import wait_future
 
-    client = node.create_client(SetBool, "/n2d/sim/set_object_visible")
-    if not client.wait_for_service(timeout_sec=timeout_s):
-        raise DeviceError("the simulated camera's set_object_visible service is not available")
-    if not wait_future(client.call_async(SetBool.Request(data=visible)), 60.0, "set_object_visible").success:
-        raise DeviceError("the simulated camera refused to move the object")
-    node.destroy_client(client)
+    client = node.create_client(srv_type, name)
+    try:
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise DeviceError(f"the service {name} is not available")
+        response = wait_future(client.call_async(request), 60.0, name)
+    finally:
+        node.destroy_client(client)
+    if not response.success:
+        raise DeviceError(f"{name} refused: {response.message}")
+    return response
+
+
+def _sim_switch(node, service: str, on: bool, timeout_s: float) -> None:
+    """One of the sim camera's std_srvs/SetBool services: set_object_visible, turn_over."""
+    from std_srvs.srv import SetBool
+
+    _call(node, SetBool, f"/n2d/sim/{service}", SetBool.Request(data=on), timeout_s)
+
+
+class _TurnOver:
+    """While the capture stage runs: when it asks for the object to be turned over (the Pipeline feedback of the
+    capture stage in stage `turn_over`), turn the simulated object over and call capture_node's `capture/continue`,
+    as a person or a robot arm would. In a thread of its own: the feedback arrives on the node's executor thread."""
+
+    def __init__(self, node, timeout_s: float):
+        self.node, self.timeout_s = node, timeout_s
+        self.asked, self.stop = threading.Event(), threading.Event()
+        self.error: Exception | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def watch(self, fb) -> None:
+        from n2d_capture.capture import TURN_OVER
+
+        if fb.stage == "capture" and fb.message.startswith(TURN_OVER):
+            self.asked.set()
+
+    def _run(self) -> None:
+        from std_srvs.srv import Trigger
+
+        while not self.stop.is_set():
+            if not self.asked.wait(0.2):
+                continue
+            try:
+                _sim_switch(self.node, "turn_over", True, self.timeout_s)
+                _call(self.node, Trigger, "/n2d/capture/continue", Trigger.Request(), self.timeout_s)
+            except DeviceError as exc:
+                self.error = exc
+            return  # two placements: one turn
+
+    def __enter__(self) -> _TurnOver:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(timeout=120.0)
+        if self.error is not None and exc[0] is None:
+            raise self.error
 
 
 class _LiveRecorder:

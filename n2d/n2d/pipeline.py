@@ -11,7 +11,7 @@ The stages run through a `StageRunner`; `pipeline_node` and `n2d demo` use the s
 held-out synthetic frames and on the board-posed test sweep (a real-world test set: captured at angles
 between the object sweep's, with ground truth from the ChArUco board).
 
-    capture       object sweep                     -> capture/       (capture session)
+    capture       object sweep(s)                  -> capture/       (capture session)
     test_capture  sweep half a step off the first  -> capture_test/  (capture session)
     reconstruct   capture/                         -> model/         (textured metric mesh)
     dataset       model/                           -> dataset/       (BOP + DOPE, seed)
@@ -72,6 +72,10 @@ class PipelineConfig:
 
     views: int = 36
     """Stops of the object sweep (the views the reconstruction uses)."""
+    placements: int = 1
+    """Sweeps of the object: 2 turns it over after the first (the capture waits for that, stage `turn_over`, and
+    continues on capture_node's `capture/continue`) and sweeps it again, so the model is closed, its underside
+    reconstructed too (1 or 2)."""
     test_views: int = 12
     """Stops of the test sweep, half a step off the object sweep's (the board-posed test set; 0: none)."""
     require_empty_plate: bool = True
@@ -107,6 +111,8 @@ class PipelineConfig:
     def __post_init__(self):
         if self.views < 1 or self.test_views < 0:
             raise ValueError("views must be >= 1 and test_views >= 0")
+        if self.placements not in (1, 2):
+            raise ValueError(f"placements is 1 or 2, got {self.placements}")
         if self.frames < 1 or self.test_frames < 0:
             raise ValueError("frames must be >= 1 and test_frames >= 0")
         if self.train_minutes < 0:
@@ -126,7 +132,9 @@ class PipelineConfig:
         sweep = {"views": self.test_views if test else self.views}
         if test:
             sweep["start_angle_rad"] = math.pi / self.views
-        return {**self.capture, "sweep": {**self.capture.get("sweep", {}), **sweep}}
+        # the test sweep is of the object as it first stood (the model's frame): one placement
+        placements = {"placements": 1 if test else self.placements} if self.placements > 1 else {}
+        return {**self.capture, **placements, "sweep": {**self.capture.get("sweep", {}), **sweep}}
 
     def train_overrides(self) -> dict:
         if not self.train_minutes:
