@@ -1,10 +1,11 @@
 """The Capture action across processes, as a task planner calls it: `n2d launch capture` (simulated servo and
 camera, turntable_node, capture_node), an rclpy client here: empty-plate sweep, object sweep, complete session;
 a capture of two placements that waits for the object to be turned over, is cancelled while it waits, resumes at
-the pause and continues on `capture/continue`."""
+the pause, continues on `capture/continue`, and stopped in its second sweep resumes there."""
 
 import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -101,7 +102,20 @@ def test_capture_action_waits_for_the_object_turned_over(tmp_path, ros_domain):
         assert "rotating" not in feedback and read_sweep(session.with_name("session.partial"), "images") == first
         assert wait_future(turn.call_async(SetBool.Request(data=True)), 60).success
         assert wait_future(resume.call_async(Trigger.Request()), 30).success
+        # stopped during the second sweep, it resumes there: the object is not asked for again
+        partial = session.with_name("session.partial")
+        deadline = time.monotonic() + 300
+        while len(read_sweep(partial, "images2")) < 2:
+            assert time.monotonic() < deadline, "\n".join(logs[-40:])
+            time.sleep(0.2)
+        wait_future(goal.cancel_goal_async(), 30)
+        assert wait_future(goal.get_result_async(), 120).status == GoalStatus.STATUS_CANCELED
+        kept = read_sweep(partial, "images2")
+        feedback.clear()
+        goal = send_goal(client, request, feedback_callback=on_feedback)
+        assert goal.accepted
         result = wait_future(goal.get_result_async(), 400)
+        assert TURN_OVER not in feedback and read_sweep(session, "images2")[:len(kept)] == kept
         assert result.status == GoalStatus.STATUS_SUCCEEDED, (result.result.message, "\n".join(logs[-40:]))
         assert result.result.views_captured == 2 * PLACED_VIEWS
         assert not launch.dead()
