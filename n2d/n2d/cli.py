@@ -64,6 +64,9 @@ def cmd_demo(args) -> int:
     s = run_demo(args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("demo"))
     print(f"demo: {s['object']} in {s['seconds_total'] / 60:.1f} min; per stage: "
           + ", ".join(f"{stage} {seconds:.0f} s" for stage, seconds in s["seconds"].items()))
+    for placed in (s.get("placements") or {}).get("registered", []):
+        print(f"demo: placement {placed['placement'] + 1} registered to the first (turned {placed['turned_deg']:.1f} "
+              f"deg, views covered {100 * placed['min_view_coverage']:.1f} %) and fused: a closed model")
     for test, by_precision in s["evaluation"].items():
         for precision, r in by_precision.items():
             print(f"demo: {test} test set ({precision}): {_accuracy_line(r)}")

@@ -163,7 +163,8 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
     progress(Progress(1.0, "done"))
     summary = {"object": name, "run_dir": str(out), "seconds_total": round(time.monotonic() - t_start, 1),
                "seconds": {s: v["seconds"] for s, v in status["stages"].items()},
-               "evaluation": status["stages"]["evaluate"]["summary"], "live": live}
+               "evaluation": status["stages"]["evaluate"]["summary"], "live": live,
+               "placements": status["stages"]["reconstruct"]["summary"].get("placements")}
     if live is not None:
         summary["seconds"]["live"] = live["seconds"]
     atomic_write_json(summary_file, summary)

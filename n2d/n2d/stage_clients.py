@@ -66,7 +66,7 @@ class ActionStages:
         goal = Reconstruct.Goal(session_dir=str(session_dir), model_dir=str(model_dir),
                                 method=overrides.get("method", ""), config_yaml=_yaml(overrides), resume=True)
         report = json.loads(self._call(self.reconstruct_client, goal, "reconstruct_node", progress, cancel).report_json)
-        return {k: report[k] for k in ("model", "heldout", "geometry", "timings_s") if k in report}
+        return {k: report[k] for k in ("model", "heldout", "geometry", "timings_s", "placements") if k in report}
 
     def dataset(self, model_dir: Path, dataset_dir: Path, frames: int, seed: int, overrides: dict, *,
                 progress: ProgressFn, cancel: threading.Event) -> dict:
