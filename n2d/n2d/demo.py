@@ -1,17 +1,16 @@
 """`n2d demo`: the whole job on the embedded default world (simulated servo + camera + a sample object).
 
-It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and
-acts as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate
-sweep, puts the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset,
-training, evaluation, one progress display over all of them. With `pipeline.placements: 2` the capture stage
-runs as a goal of its own: when it asks for the object to be turned over (capture_node's `turn_over`
-feedback) the demo turns the simulated object over (`sim/turn_over`) and calls `capture/continue`; once both
-sweeps are taken it puts the object back as it first stood for the test sweep and the live check, and the
-reconstruction fuses the two placements into a closed model. Then the live check: `dope_node` runs the
-new model on the simulated camera while the plate turns to angles no sweep used, and each published
-pose is scored against the simulator's ground truth (ADD / ADD-S with the reconstructed model's
-points). Everything lands in one run directory; Ctrl-C at any stage and the same command continues
-from the last finished stage (the unfinished one resumes from its partial output).
+It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and acts
+as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate sweep, puts
+the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset, training,
+evaluation, one progress display over all of them. With `pipeline.placements: 2` the test sweep runs first,
+and when the capture stage asks for the object to be turned over (capture_node's `turn_over` feedback) the
+demo turns the simulated object over (`sim/turn_over`) and calls `capture/continue`; the reconstruction fuses
+the two placements into a closed model, and the object is stood back as it first stood for the live check.
+Then the live check: `dope_node` runs the new model on the simulated camera while the plate turns to angles no
+sweep used, and each published pose is scored against the simulator's ground truth (ADD / ADD-S with the
+reconstructed model's points). Everything lands in one run directory; Ctrl-C at any stage and the same command
+continues from the last finished stage (the unfinished one resumes from its partial output).
 """
 
 from __future__ import annotations
@@ -148,14 +147,12 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
             _set_object_visible(node, False, cfg.startup_timeout_s)
             pipeline([EMPTY_PLATE], 0.0, 0.05, overwrite)
             _set_object_visible(node, True, 30.0)
-        fresh = overwrite and not empty_sweep
-        start = 0.05
+        if cfg.pipeline.placements > 1 and not overwrite and _turned_over(layout, status):
+            _sim_switch(node, "turn_over", True, 60.0)  # a fresh world, resuming the second sweep: as it was
+        with _TurnOver(node, cfg.startup_timeout_s) as turner:
+            status = json.loads(pipeline([], 0.05, 0.9, overwrite and not empty_sweep, watch=turner.watch).summary_json)
         if cfg.pipeline.placements > 1:
-            with _TurnOver(node, cfg.startup_timeout_s) as turner:
-                pipeline(["capture"], start, 0.1, fresh, watch=turner.watch)
-            _sim_switch(node, "turn_over", False, 60.0)  # as it first stood: the model's frame
-            fresh, start = False, 0.15
-        status = json.loads(pipeline([], start, 0.95 - start, fresh).summary_json)
+            _sim_switch(node, "turn_over", False, 60.0)  # as it first stood, in the model's frame, for the live check
         live = None
         if cfg.live_views:
             progress(Progress(0.95, "live", message="dope_node on the simulated camera"))
@@ -180,6 +177,13 @@ def _startup_failure(launch, logs: list[str]) -> str:
 def _set_object_visible(node, visible: bool, timeout_s: float) -> None:
     """Lift the simulated object off the plate or put it back (the sim camera's service)."""
     _sim_switch(node, "set_object_visible", visible, timeout_s)
+
+
+def _turned_over(layout: RunLayout, status: dict) -> bool:
+    """Whether the run's unfinished capture had the object turned over already (its second sweep resumes)."""
+    from n2d_capture.capture import PLACEMENT_FILE
+
+    return not layout.done("capture", status) and (layout.root / "capture.partial" / PLACEMENT_FILE).is_file()
 
 
 def _call(node, srv_type, name: str, request, timeout_s: float):

@@ -21,6 +21,8 @@ between the object sweep's, with ground truth from the ChArUco board).
 
 `empty_plate` is a stage run only when asked for: the empty-plate sweep into `capture/` (the background
 reference of the masks), for a caller who has cleared the plate; the `capture` stage then completes it.
+With `placements: 2` the test sweep runs before the object sweeps (`PLACED_STAGES`): the capture stage waits for
+the object to be turned over between its two sweeps and leaves it so.
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ from n2d_dope.config import TIMED_EPOCHS
 
 STAGES = ("capture", "test_capture", "reconstruct", "dataset", "test_dataset", "train", "evaluate")
 """The stages of a run, in order."""
+PLACED_STAGES = ("test_capture", "capture", *STAGES[2:])
+"""The order of a run of two placements: the test sweep first, while the object stands as it first stood (the model's
+frame), since the capture leaves it turned over."""
 EMPTY_PLATE = "empty_plate"
 """The optional stage before `capture` (see the module doc)."""
 OUTPUTS = {EMPTY_PLATE: "capture", "capture": "capture", "test_capture": "capture_test", "reconstruct": "model",
@@ -125,7 +130,7 @@ class PipelineConfig:
         """The stages this config runs (the test stages only when they have views / frames)."""
         skip = {"test_capture"} if self.test_views == 0 else set()
         skip |= {"test_dataset"} if self.test_frames == 0 else set()
-        return [s for s in STAGES if s not in skip]
+        return [s for s in (PLACED_STAGES if self.placements > 1 else STAGES) if s not in skip]
 
     def capture_overrides(self, test: bool) -> dict:
         """Capture config of the object sweep, or of the test sweep half a step off it."""
@@ -233,7 +238,7 @@ def _order(requested: list[str] | None, cfg: PipelineConfig) -> list[str]:
     """The stages to run, in pipeline order; ConfigError for unknown names."""
     if not requested:
         return cfg.stages()
-    known = (EMPTY_PLATE, *STAGES)
+    known = (EMPTY_PLATE, *(PLACED_STAGES if cfg.placements > 1 else STAGES))
     unknown = [s for s in requested if s not in known]
     if unknown:
         raise ConfigError(f"unknown stage(s) {', '.join(unknown)}", f"stages are {', '.join(known)}")
