@@ -161,15 +161,16 @@ def _intrinsics(cfg: CaptureConfig, views: list[dict], detections: list, size: t
 def process_session(directory: Path, cfg: CaptureConfig, progress: ProgressFn = no_progress) -> dict:
     """Poses, masks, transforms.json, capture.json and contact_sheet.png of the sweeps in `directory`.
 
-    With `cfg.placements` 2 the second placement's sweep (`images2/`) is processed like the first, each posed in
-    its own turntable frame (its own fit, or the empty plate's, which both share) and masked against the same
-    empty-plate reference: the frames of transforms.json carry their placement index."""
+    With `cfg.placements` 2 the second placement's sweep (`images2/`) is processed like the first: posed with the
+    empty plate's axis fit, or without one with the first placement's (the turned object may hide the board), and
+    masked against the same empty-plate reference; the frames of transforms.json carry their placement index."""
     t0 = time.monotonic()
     sweeps = [read_sweep(directory, sweep_name(p)) for p in range(cfg.placements)]
     empty = {v["index"]: v for v in read_sweep(directory, "empty")}
     missing = [p + 1 for p, views in enumerate(sweeps) if not views]
     if missing:
-        raise ContractError(f"{directory} holds no views of placement {missing[0]}", "run the capture sweep first")
+        which = f" of placement {missing[0]}" if cfg.placements > 1 else ""
+        raise ContractError(f"{directory} holds no views{which}", "run the capture sweep first")
     progress(Progress(0.0, "posing", message="detecting the board"))
     images = [[read_png(directory / v["file"]) for v in views] for views in sweeps]
     references = {i: read_png(directory / v["file"]) for i, v in empty.items()}
