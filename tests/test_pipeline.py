@@ -12,6 +12,7 @@ from std_srvs.srv import Trigger
 from n2d.launch_description import load
 from n2d.launcher import Launch
 from n2d.pipeline import FAST_TRAIN, PipelineConfig, run_pipeline
+from n2d_capture.capture import CaptureConfig
 from n2d_common.config import to_dict
 from n2d_common.contracts import open_stage, write_manifest
 from n2d_common.errors import ConfigError, ContractError
@@ -46,6 +47,17 @@ def test_config_checks_and_test_sweep_angles():
                                                   "max_minutes": PipelineConfig().train_minutes}
     assert PipelineConfig(train_minutes=8.0, train={}).train_overrides() == {"epochs": TIMED_EPOCHS, "max_minutes": 8.0}
     assert PipelineConfig(train_minutes=8.0, train={"epochs": 300}).train_overrides()["epochs"] == 300
+
+
+def test_two_placements_sweep_the_test_set_first_and_capture_twice():
+    with pytest.raises(ValueError, match="placements"):
+        PipelineConfig(placements=3)
+    cfg = PipelineConfig(placements=2, test_frames=0)
+    # the capture leaves the object turned over: the test sweep comes first, while it stands as the model's frame
+    assert cfg.stages() == ["test_capture", "capture", "reconstruct", "dataset", "train", "evaluate"]
+    assert CaptureConfig(**{k: v for k, v in cfg.capture_overrides(test=False).items() if k != "sweep"}).placements == 2
+    assert cfg.capture_overrides(test=True)["placements"] == 1
+    assert "placements" not in PipelineConfig().capture_overrides(test=False)  # one-placement configs as before
 
 
 def test_bad_input_is_refused_before_any_stage_runs(tmp_path):

@@ -2,7 +2,8 @@
 
 Small renders (160x120, K scaled) check the exact object mask against the projected ground-truth
 mesh; one 640x480 render checks that the ChArUco board is detectable where T_cam_turntable and
-T_plate_board say it is.
+T_plate_board say it is; the object turned over in the built scene (`place`) is rendered, masked and posed
+where it lies then.
 """
 
 import math
@@ -18,6 +19,7 @@ from n2d_common.frames import inv_T, project, transform_points
 from n2d_sim import world
 from n2d_sim.camera import SimCamera
 from n2d_sim.objects import SAMPLE_OBJECTS, sample_object_dir
+from n2d_sim.session import turned as turned_world
 from n2d_sim.world import SimWorldConfig
 
 SMALL = dict(width=160, height=120, focal_px=150.0, samples=2, denoiser="none", background_samples=2)
@@ -186,3 +188,23 @@ def test_charuco_board_is_detected_where_the_ground_truth_puts_it():
     expected = project(frame.K, T_cam_board, board.getChessboardCorners()[ids.ravel()])
     error = np.linalg.norm(corners.reshape(-1, 2) - expected, axis=1)
     assert error.mean() < 0.4 and error.max() < 1.0, error
+
+
+@pytest.mark.slow
+def test_turned_over_in_the_built_scene_the_frames_and_truth_follow():
+    cfg = SimWorldConfig(object="box", **SMALL)
+    turned = turned_world(cfg)
+    v = _vertices("box")
+    with SimCamera(cfg) as cam:
+        upright = cam.render(ANGLES[1])
+        cam.place(turned.placement_deg)
+        lying = cam.render(ANGLES[1])  # the same angle: not the cached upright frame
+        cam.place(cfg.placement_deg)
+        back = cam.render(ANGLES[1])
+    np.testing.assert_allclose(lying.T_cam_obj, world.T_cam_obj(turned, ANGLES[1]))
+    assert lying.render_s > 0 and not np.array_equal(lying.mask, upright.mask)
+    # the convex box's exact mask is the projected hull of its mesh where it lies now
+    uv = project(lying.K, lying.T_cam_obj, v)
+    assert (_centres_inside_convex(uv, lying.mask.shape) != lying.mask).sum() <= 2
+    np.testing.assert_array_equal(back.mask, upright.mask)
+    np.testing.assert_allclose(back.T_cam_obj, upright.T_cam_obj)

@@ -64,6 +64,9 @@ def cmd_demo(args) -> int:
     s = run_demo(args.out, cfg, overwrite=args.overwrite, progress=_progress_bar("demo"))
     print(f"demo: {s['object']} in {s['seconds_total'] / 60:.1f} min; per stage: "
           + ", ".join(f"{stage} {seconds:.0f} s" for stage, seconds in s["seconds"].items()))
+    for placed in (s.get("placements") or {}).get("registered", []):
+        print(f"demo: placement {placed['placement'] + 1} registered to the first (turned {placed['turned_deg']:.1f} "
+              f"deg, views covered {100 * placed['min_view_coverage']:.1f} %) and fused: a closed model")
     for test, by_precision in s["evaluation"].items():
         for precision, r in by_precision.items():
             print(f"demo: {test} test set ({precision}): {_accuracy_line(r)}")
@@ -176,6 +179,13 @@ def _posed_counts(summary: dict) -> str:
     return ", ".join(f"{n} {what}" for n, what in counts if n)
 
 
+def _wait_for_enter(placement: int, placements: int) -> None:
+    """`n2d capture --set placements=2`: the person at the turntable turns the object over and presses Enter."""
+    from n2d_capture.capture import turn_over_request
+
+    input(f"\ncapture: {turn_over_request(placement, placements).message}: press Enter when it lies so ")
+
+
 def cmd_capture(args) -> int:
     import threading
 
@@ -189,7 +199,8 @@ def cmd_capture(args) -> int:
         rotator, camera = _capture_io(args, cancel, stack)
         try:
             summary = capture(args.session, cfg, rotator, camera, empty_plate=args.empty,
-                              overwrite=args.overwrite, progress=_progress_bar("capture"), cancel=cancel)
+                              overwrite=args.overwrite, progress=_progress_bar("capture"), cancel=cancel,
+                              turn_over=lambda placement: _wait_for_enter(placement, cfg.placements))
         except KeyboardInterrupt:
             cancel.set()
             raise
@@ -471,7 +482,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Turn the plate through --views stops and take a fresh frame at each. Run "
                        "once with --empty on the empty plate (the background reference), then place the object "
                        "and run again: the object sweep, camera poses from the ChArUco board (metric, in the "
-                       "turntable frame) and masks. A stopped sweep resumes when run again.")
+                       "turntable frame) and masks. A stopped sweep resumes when run again. With --set placements=2 it "
+                       "asks for the object to be turned over after the first sweep (press Enter) and sweeps again: "
+                       "the reconstruction then sees the underside too.")
     p.add_argument("session", type=Path, help="capture session directory")
     p.add_argument("--empty", action="store_true", help="record the empty-plate sweep")
     p.add_argument("--views", type=int, default=0, help="stops per revolution (default: the config's, 36)")

@@ -1,13 +1,16 @@
 """`n2d demo`: the whole job on the embedded default world (simulated servo + camera + a sample object).
 
-It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and
-acts as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate
-sweep, puts the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset,
-training, evaluation, one progress display over all of them. Then the live check: `dope_node` runs the
-new model on the simulated camera while the plate turns to angles no sweep used, and each published
-pose is scored against the simulator's ground truth (ADD / ADD-S with the reconstructed model's
-points). Everything lands in one run directory; Ctrl-C at any stage and the same command continues
-from the last finished stage (the unfinished one resumes from its partial output).
+It starts what `n2d launch pipeline` starts (the simulated world, the stage nodes and pipeline_node) and acts
+as a task planner would: it clears the plate (the simulator lifts the object) for the empty-plate sweep, puts
+the object back and sends one `Pipeline` goal: capture, test sweep, reconstruction, dataset, training,
+evaluation, one progress display over all of them. With `pipeline.placements: 2` the test sweep runs first,
+and when the capture stage asks for the object to be turned over (capture_node's `turn_over` feedback) the
+demo turns the simulated object over (`sim/turn_over`) and calls `capture/continue`; the reconstruction fuses
+the two placements into a closed model, and the object is stood back as it first stood for the live check.
+Then the live check: `dope_node` runs the new model on the simulated camera while the plate turns to angles no
+sweep used, and each published pose is scored against the simulator's ground truth (ADD / ADD-S with the
+reconstructed model's points). Everything lands in one run directory; Ctrl-C at any stage and the same command
+continues from the last finished stage (the unfinished one resumes from its partial output).
 """
 
 from __future__ import annotations
@@ -124,14 +127,17 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
             raise DeviceError(_startup_failure(launch, logs))
         config_yaml = yaml.safe_dump(to_dict(cfg.pipeline))
 
-        def pipeline(stages: list[str], start: float, share: float, overwrite: bool):
-            """Send a Pipeline goal; its progress fills [start, start + share] of the demo's."""
+        def pipeline(stages: list[str], start: float, share: float, overwrite: bool, watch=None):
+            """Send a Pipeline goal; its progress fills [start, start + share] of the demo's; `watch` sees each
+            feedback too."""
             goal = Pipeline.Goal(object_name=name, run_dir=str(out), config_yaml=config_yaml, stages=stages,
                                  overwrite=overwrite)
 
             def feedback(fb) -> None:
                 progress(Progress(start + share * fb.progress, f"{fb.stage_index}/{fb.stages_total} {fb.stage}",
                                   fb.eta_s, fb.message))
+                if watch is not None:
+                    watch(fb)
 
             return call_action(client, goal, what="pipeline", feedback=feedback)
 
@@ -141,7 +147,12 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
             _set_object_visible(node, False, cfg.startup_timeout_s)
             pipeline([EMPTY_PLATE], 0.0, 0.05, overwrite)
             _set_object_visible(node, True, 30.0)
-        status = json.loads(pipeline([], 0.05, 0.9, overwrite and not empty_sweep).summary_json)
+        if cfg.pipeline.placements > 1 and not overwrite and _turned_over(layout, status):
+            _sim_switch(node, "turn_over", True, 60.0)  # a fresh world, resuming the second sweep: as it was
+        with _TurnOver(node, cfg.startup_timeout_s) as turner:
+            status = json.loads(pipeline([], 0.05, 0.9, overwrite and not empty_sweep, watch=turner.watch).summary_json)
+        if cfg.pipeline.placements > 1:
+            _sim_switch(node, "turn_over", False, 60.0)  # as it first stood, in the model's frame, for the live check
         live = None
         if cfg.live_views:
             progress(Progress(0.95, "live", message="dope_node on the simulated camera"))
@@ -149,7 +160,8 @@ def run_demo(out: str | Path, cfg: DemoConfig, *, overwrite: bool = False, progr
     progress(Progress(1.0, "done"))
     summary = {"object": name, "run_dir": str(out), "seconds_total": round(time.monotonic() - t_start, 1),
                "seconds": {s: v["seconds"] for s, v in status["stages"].items()},
-               "evaluation": status["stages"]["evaluate"]["summary"], "live": live}
+               "evaluation": status["stages"]["evaluate"]["summary"], "live": live,
+               "placements": status["stages"]["reconstruct"]["summary"].get("placements")}
     if live is not None:
         summary["seconds"]["live"] = live["seconds"]
     atomic_write_json(summary_file, summary)
@@ -164,16 +176,78 @@ def _startup_failure(launch, logs: list[str]) -> str:
 
 def _set_object_visible(node, visible: bool, timeout_s: float) -> None:
     """Lift the simulated object off the plate or put it back (the sim camera's service)."""
-    from std_srvs.srv import SetBool
+    _sim_switch(node, "set_object_visible", visible, timeout_s)
 
+
+def _turned_over(layout: RunLayout, status: dict) -> bool:
+    """Whether the run's unfinished capture had the object turned over already (its second sweep resumes)."""
+    from n2d_capture.capture import PLACEMENT_FILE
+
+    return not layout.done("capture", status) and (layout.root / "capture.partial" / PLACEMENT_FILE).is_file()
+
+
+def _call(node, srv_type, name: str, request, timeout_s: float):
+    """Call the service `name` once (waiting `timeout_s` for it to appear); DeviceError when it fails."""
     from n2d_common.ros import wait_future
 
-    client = node.create_client(SetBool, "/n2d/sim/set_object_visible")
-    if not client.wait_for_service(timeout_sec=timeout_s):
-        raise DeviceError("the simulated camera's set_object_visible service is not available")
-    if not wait_future(client.call_async(SetBool.Request(data=visible)), 60.0, "set_object_visible").success:
-        raise DeviceError("the simulated camera refused to move the object")
-    node.destroy_client(client)
+    client = node.create_client(srv_type, name)
+    try:
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise DeviceError(f"the service {name} is not available")
+        response = wait_future(client.call_async(request), 60.0, name)
+    finally:
+        node.destroy_client(client)
+    if not response.success:
+        raise DeviceError(f"{name} refused: {response.message}")
+    return response
+
+
+def _sim_switch(node, service: str, on: bool, timeout_s: float) -> None:
+    """One of the sim camera's std_srvs/SetBool services: set_object_visible, turn_over."""
+    from std_srvs.srv import SetBool
+
+    _call(node, SetBool, f"/n2d/sim/{service}", SetBool.Request(data=on), timeout_s)
+
+
+class _TurnOver:
+    """While the capture stage runs: when it asks for the object to be turned over (the Pipeline feedback of the
+    capture stage in stage `turn_over`), turn the simulated object over and call capture_node's `capture/continue`,
+    as a person or a robot arm would. In a thread of its own: the feedback arrives on the node's executor thread."""
+
+    def __init__(self, node, timeout_s: float):
+        self.node, self.timeout_s = node, timeout_s
+        self.asked, self.stop = threading.Event(), threading.Event()
+        self.error: Exception | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def watch(self, fb) -> None:
+        from n2d_capture.capture import TURN_OVER
+
+        if fb.stage == "capture" and fb.message.startswith(TURN_OVER):
+            self.asked.set()
+
+    def _run(self) -> None:
+        from std_srvs.srv import Trigger
+
+        while not self.stop.is_set():
+            if not self.asked.wait(0.2):
+                continue
+            try:
+                _sim_switch(self.node, "turn_over", True, self.timeout_s)
+                _call(self.node, Trigger, "/n2d/capture/continue", Trigger.Request(), self.timeout_s)
+            except DeviceError as exc:
+                self.error = exc
+            return  # two placements: one turn
+
+    def __enter__(self) -> _TurnOver:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(timeout=120.0)
+        if self.error is not None and exc[0] is None:
+            raise self.error
 
 
 class _LiveRecorder:

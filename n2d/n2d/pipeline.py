@@ -11,7 +11,7 @@ The stages run through a `StageRunner`; `pipeline_node` and `n2d demo` use the s
 held-out synthetic frames and on the board-posed test sweep (a real-world test set: captured at angles
 between the object sweep's, with ground truth from the ChArUco board).
 
-    capture       object sweep                     -> capture/       (capture session)
+    capture       object sweep(s)                  -> capture/       (capture session)
     test_capture  sweep half a step off the first  -> capture_test/  (capture session)
     reconstruct   capture/                         -> model/         (textured metric mesh)
     dataset       model/                           -> dataset/       (BOP + DOPE, seed)
@@ -21,6 +21,8 @@ between the object sweep's, with ground truth from the ChArUco board).
 
 `empty_plate` is a stage run only when asked for: the empty-plate sweep into `capture/` (the background
 reference of the masks), for a caller who has cleared the plate; the `capture` stage then completes it.
+With `placements: 2` the test sweep runs before the object sweeps (`PLACED_STAGES`): the capture stage waits for
+the object to be turned over between its two sweeps and leaves it so.
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ from n2d_dope.config import TIMED_EPOCHS
 
 STAGES = ("capture", "test_capture", "reconstruct", "dataset", "test_dataset", "train", "evaluate")
 """The stages of a run, in order."""
+PLACED_STAGES = ("test_capture", "capture", *STAGES[2:])
+"""The order of a run of two placements: the test sweep first, while the object stands as it first stood (the model's
+frame), since the capture leaves it turned over."""
 EMPTY_PLATE = "empty_plate"
 """The optional stage before `capture` (see the module doc)."""
 OUTPUTS = {EMPTY_PLATE: "capture", "capture": "capture", "test_capture": "capture_test", "reconstruct": "model",
@@ -53,7 +58,7 @@ NEEDS = {"capture": (), "test_capture": (), "reconstruct": ("capture",), "datase
 """The stages whose output each stage reads."""
 CAPTURE_STAGES = (EMPTY_PLATE, "capture", "test_capture")
 """The stages that drive the turntable and the camera (the rest run anywhere, e.g. on a cluster)."""
-RECONSTRUCT_SUMMARY = ("model", "heldout", "geometry", "timings_s")
+RECONSTRUCT_SUMMARY = ("model", "heldout", "geometry", "timings_s", "placements")
 """What run.json keeps of a reconstruction's report."""
 TRAIN_SUMMARY = ("backbone", "parameters", "steps", "train_frames", "train_seconds", "held_out_loss", "device")
 """What run.json keeps of a training's summary."""
@@ -78,6 +83,10 @@ class PipelineConfig:
 
     views: int = 36
     """Stops of the object sweep (the views the reconstruction uses)."""
+    placements: int = 1
+    """Sweeps of the object: 2 turns it over after the first (the capture waits for that, stage `turn_over`, and
+    continues on capture_node's `capture/continue`) and sweeps it again, so the model is closed, its underside
+    reconstructed too (1 or 2)."""
     test_views: int = 12
     """Stops of the test sweep, half a step off the object sweep's (the board-posed test set; 0: none)."""
     require_empty_plate: bool = True
@@ -113,6 +122,8 @@ class PipelineConfig:
     def __post_init__(self):
         if self.views < 1 or self.test_views < 0:
             raise ValueError("views must be >= 1 and test_views >= 0")
+        if self.placements not in (1, 2):
+            raise ValueError(f"placements is 1 or 2, got {self.placements}")
         if self.frames < 1 or self.test_frames < 0:
             raise ValueError("frames must be >= 1 and test_frames >= 0")
         if self.train_minutes < 0:
@@ -125,14 +136,16 @@ class PipelineConfig:
         """The stages this config runs (the test stages only when they have views / frames)."""
         skip = {"test_capture"} if self.test_views == 0 else set()
         skip |= {"test_dataset"} if self.test_frames == 0 else set()
-        return [s for s in STAGES if s not in skip]
+        return [s for s in (PLACED_STAGES if self.placements > 1 else STAGES) if s not in skip]
 
     def capture_overrides(self, test: bool) -> dict:
         """Capture config of the object sweep, or of the test sweep half a step off it."""
         sweep = {"views": self.test_views if test else self.views}
         if test:
             sweep["start_angle_rad"] = math.pi / self.views
-        return {**self.capture, "sweep": {**self.capture.get("sweep", {}), **sweep}}
+        # the test sweep is of the object as it first stood (the model's frame): one placement
+        placements = {"placements": 1 if test else self.placements} if self.placements > 1 else {}
+        return {**self.capture, **placements, "sweep": {**self.capture.get("sweep", {}), **sweep}}
 
     def train_overrides(self) -> dict:
         if not self.train_minutes:
@@ -231,7 +244,7 @@ def stage_order(requested: list[str] | None, cfg: PipelineConfig) -> list[str]:
     """The stages to run, in pipeline order; ConfigError for unknown names."""
     if not requested:
         return cfg.stages()
-    known = (EMPTY_PLATE, *STAGES)
+    known = (EMPTY_PLATE, *(PLACED_STAGES if cfg.placements > 1 else STAGES))
     unknown = [s for s in requested if s not in known]
     if unknown:
         raise ConfigError(f"unknown stage(s) {', '.join(unknown)}", f"stages are {', '.join(known)}")

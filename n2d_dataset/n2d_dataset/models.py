@@ -37,6 +37,10 @@ class Model:
     """The model directory (mesh.obj in metres, object frame)."""
     info: tuple
     """(min xyz, size xyz, diameter) from models_info.json, metres."""
+    closed: bool = False
+    """Whether the mesh covers the whole object, the side it stood on in the capture included: fused from two
+    placements (`placements` in its manifest) or a simulator's whole mesh (`ground_truth`). An open model is cut at
+    the plate, so no frame shows it from below (see `poses`)."""
 
     @property
     def min_m(self) -> np.ndarray:
@@ -111,7 +115,8 @@ def load_models(directories: list[str | Path]) -> list[Model]:
                                 "re-run n2d reconstruct for this model") from None
         if not (d / "mesh.obj").is_file():
             raise ContractError(f"{d} has no mesh.obj", "re-run n2d reconstruct for this model")
-        model = Model(name, i + 1, d, entry)
+        extra = manifest.get("extra", {})
+        model = Model(name, i + 1, d, entry, int(extra.get("placements", 1)) > 1 or bool(extra.get("ground_truth")))
         _check_mesh(model)
         models.append(model)
     return models

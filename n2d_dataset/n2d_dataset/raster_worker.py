@@ -27,21 +27,20 @@ from n2d_dataset import writer
 from n2d_dataset.annotate import annotate
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import load_models
-from n2d_dataset.poses import in_view, sample_camera
+from n2d_dataset.poses import candidate_camera, sample_camera
 from n2d_dataset.raster_scene import Placed, RasterSceneBuilder
 from n2d_dataset.shading import Geometry, MergedMeshes, RasterScene, shade, trace
 
 
 def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, scene: RasterScene, merged: MergedMeshes,
-                   focus: Placed) -> tuple[np.ndarray, Geometry]:
+                   focus: Placed, in_hand: bool) -> tuple[np.ndarray, Geometry]:
     """Sample camera poses until the focus target is visible enough; returns (T_world_cam, its labels)."""
     c = cfg.camera
     K = c.K()
     best: tuple[float, np.ndarray | None, Geometry | None] = (-1.0, None, None)
     for _ in range(c.max_tries):
-        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg,
-                                    c.look_at_jitter_m, c.roll_deg)
-        if not in_view(K, c.width, c.height, inv_T(T_world_cam) @ focus.T_world_obj()):
+        T_world_cam = candidate_camera(rng, c, focus.model, focus.T_world_obj(), in_hand)
+        if T_world_cam is None:
             continue
         g = trace(scene, K, T_world_cam, c.width, c.height, merged)
         a = annotate(focus.model, focus.label, inv_T(T_world_cam) @ focus.T_world_obj(), K, g.index, g.depth)
@@ -71,7 +70,7 @@ def _render_frame(cfg: DatasetConfig, builder: RasterSceneBuilder, root: Path, f
     scene, placed, focus, in_hand = builder.build(rng)
     merged = MergedMeshes(scene.bodies)
     t1 = time.perf_counter()
-    T_world_cam, g = _choose_camera(cfg, rng, scene, merged, focus)
+    T_world_cam, g = _choose_camera(cfg, rng, scene, merged, focus, in_hand)
     t2 = time.perf_counter()
     rgb = finish_image(shade(scene, g, merged), rng)
     t3 = time.perf_counter()

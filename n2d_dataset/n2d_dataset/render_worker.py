@@ -28,18 +28,18 @@ from n2d_dataset import writer
 from n2d_dataset.annotate import annotate
 from n2d_dataset.config import DatasetConfig
 from n2d_dataset.models import load_models
-from n2d_dataset.poses import in_view, sample_camera
+from n2d_dataset.poses import candidate_camera, sample_camera
 from n2d_dataset.scene import Instance, SceneBuilder
 
 
-def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, cam: bpy.types.Object, focus: Instance) -> tuple:
+def _choose_camera(cfg: DatasetConfig, rng: np.random.Generator, cam: bpy.types.Object, focus: Instance,
+                   in_hand: bool) -> tuple:
     """Sample camera poses until the focus target is visible enough; returns (T_world_cam, labels or None)."""
     c = cfg.camera
     best = (-1.0, None, None)
     for _ in range(c.max_tries):
-        T_world_cam = sample_camera(rng, focus.T_world_obj()[:3, 3], c.distance_m, c.elevation_deg,
-                                    c.look_at_jitter_m, c.roll_deg)
-        if not in_view(c.K(), c.width, c.height, inv_T(T_world_cam) @ focus.T_world_obj()):
+        T_world_cam = candidate_camera(rng, c, focus.model, focus.T_world_obj(), in_hand)
+        if T_world_cam is None:
             continue
         set_pose(cam, T_world_cam)
         if not cfg.annotate:
@@ -67,7 +67,7 @@ def _render_frame(cfg: DatasetConfig, builder: SceneBuilder, root: Path, frame: 
     instances, focus, in_hand = builder.build(rng)
     bpy.context.scene.cycles.seed = int(rng.integers(2 ** 31))
     t1 = time.perf_counter()
-    T_world_cam, labels = _choose_camera(cfg, rng, builder.camera, focus)
+    T_world_cam, labels = _choose_camera(cfg, rng, builder.camera, focus, in_hand)
     if cfg.annotate and labels is None:
         with renderer.LabelRender():
             labels = renderer.render()

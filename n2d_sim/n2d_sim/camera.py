@@ -6,7 +6,8 @@ frames, so a new plate angle costs one render. The worker is a plain subprocess 
 socket pair, not a multiprocessing child, so callers need no `if __name__ == "__main__"` guard.
 Frames are noise-free and cached by angle; `noisy()` adds fresh sensor noise, so a node can
 republish the last frame at its camera rate while the plate stands still. `render(angle,
-object_visible=False)` gives the empty plate at that angle, the reference for background subtraction.
+object_visible=False)` gives the empty plate at that angle, the reference for background subtraction;
+`place(placement_deg)` turns the object over on the plate (`SimWorldConfig.placement_deg`) in the built scene.
 
     with SimCamera(SimWorldConfig(object="bottle")) as cam:
         frame = cam.render(math.radians(30))
@@ -154,15 +155,8 @@ class SimCamera:
                 self._cache.move_to_end(key)
                 return replace(self._cache[key], angle_rad=angle, T_cam_obj=world.T_cam_obj(self.cfg, angle),
                                render_s=0.0)
-            if self._conn is None:
-                raise DeviceError("the simulated camera is closed", "start() it again")
             t0 = time.perf_counter()
-            try:
-                self._conn.send(("render", (math.remainder(angle, 2 * math.pi), object_visible)))
-            except (BrokenPipeError, OSError):
-                raise DeviceError("the simulated camera's render process is gone",
-                                  "restart the camera") from None
-            out = self._receive("frame", RENDER_TIMEOUT_S)
+            out = self._ask("render", (math.remainder(angle, 2 * math.pi), object_visible), "frame")
             frame = SimFrame(rgb=out["rgb"], mask=out["mask"], depth=out["depth"], K=self.K.copy(),
                              T_cam_turntable=self.T_cam_turntable.copy(),
                              T_cam_obj=world.T_cam_obj(self.cfg, angle), angle_rad=angle,
@@ -172,6 +166,17 @@ class SimCamera:
                 self._cache.popitem(last=False)
         return frame
 
+    def place(self, placement_deg) -> None:
+        """Lay the object on the plate another way (`SimWorldConfig.placement_deg`: what a person turning it over
+        does); later frames and their ground truth show it so."""
+        cfg = replace(self.cfg, placement_deg=tuple(placement_deg))  # validated before the worker sees it
+        if self._proc is None:
+            self.start()
+        with self._lock:
+            self._ask("place", cfg.placement_deg, "placed")
+            self.cfg = cfg
+            self._cache.clear()
+
     def noisy(self, rgb: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
         """`rgb` with fresh sensor noise: Gaussian read noise plus signal-dependent shot noise (8-bit DN)."""
         rng = rng or np.random.default_rng()
@@ -179,6 +184,16 @@ class SimCamera:
         sigma = np.sqrt(np.float32(self.cfg.read_noise_dn) ** 2 + np.float32(self.cfg.shot_noise) * x)
         x += rng.standard_normal(x.shape, dtype=np.float32) * sigma
         return np.clip(np.rint(x), 0, 255).astype(np.uint8)
+
+    def _ask(self, command: str, arg, expected: str):
+        """Send the worker `(command, arg)` and return its answer of kind `expected` (the lock held)."""
+        if self._conn is None:
+            raise DeviceError("the simulated camera is closed", "start() it again")
+        try:
+            self._conn.send((command, arg))
+        except (BrokenPipeError, OSError):
+            raise DeviceError("the simulated camera's render process is gone", "restart the camera") from None
+        return self._receive(expected, RENDER_TIMEOUT_S)
 
     def _receive(self, expected: str, timeout_s: float):
         """The next message of kind `expected` from the worker, or a DeviceError saying why not."""

@@ -5,8 +5,9 @@ This is the only n2d_sim module that imports bpy, and it runs only as the worker
 costs ~0.5 GB and is not thread-safe; a ROS node owns the caller's process). FD is one end of a
 socket pair used as a `multiprocessing.connection.Connection`. Protocol: the caller sends the
 SimWorldConfig as a dict; the worker answers ("ready", info) once the scene is built, then each
-("render", (angle_rad, object_visible)) with ("frame", {rgb, mask, depth}); ("close", None) or a
-closed socket ends it; a failure is answered with ("error", traceback) and ends it too. With the
+("render", (angle_rad, object_visible)) with ("frame", {rgb, mask, depth}); ("place", placement_deg)
+lays the object on the plate another way (`SimWorldConfig.placement_deg`), answered ("placed", None);
+("close", None) or a closed socket ends it; a failure is answered with ("error", traceback) and ends it too. With the
 object hidden the frame is the empty plate (no object, no object shadows) and the mask is all False.
 
 The scene: a lab table with a procedural wood top, a back wall with a poster, distractor boxes and
@@ -50,6 +51,7 @@ import sys
 import tempfile
 import time
 import traceback
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 
@@ -216,12 +218,20 @@ class Scene:
         parts = [o for o in bpy.data.objects if o not in before and o.type == "MESH"]
         if not parts:
             raise RuntimeError(f"{directory / 'mesh.obj'} holds no mesh")
-        placed = Matrix(T_plate_obj(self.cfg).tolist())  # the placement: turned, then lowered onto the board
+        self.imported = {obj.name: obj.matrix_basis.copy() for obj in parts}  # as the model frame stands
         for obj in parts:
             obj.parent = self.rig
-            obj.matrix_basis = placed @ obj.matrix_basis
             obj.pass_index = OBJECT_INDEX
+        self.objects = parts
+        self.place(self.cfg.placement_deg)
         return parts
+
+    def place(self, placement_deg) -> None:
+        """Lay the object on the plate as `placement_deg` says: turned, then lowered onto the board."""
+        self.cfg = replace(self.cfg, placement_deg=tuple(placement_deg))
+        placed = Matrix(T_plate_obj(self.cfg).tolist())
+        for obj in self.objects:
+            obj.matrix_basis = placed @ self.imported[obj.name]
 
     def _camera(self):
         cam = make_camera(self.cfg.width, self.cfg.height, self.cfg.focal_px)
@@ -346,6 +356,10 @@ def serve(conn: Connection) -> None:
                 command, arg = conn.recv()
                 if command == "close":
                     return
+                if command == "place":
+                    scene.place(arg)
+                    conn.send(("placed", None))
+                    continue
                 frame = scene.render(*arg)
                 frame["rgb"] = to_srgb8(frame.pop("linear"), scene.cfg.exposure_ev)
                 frame.pop("alpha", None)

@@ -5,7 +5,10 @@ Publishes (under its namespace) `camera/image_raw` (rgb8, sensor noise), `camera
 `sim/object_pose` (PoseStamped, T_cam_obj) and `sim/object_mask` (mono8, 255 = object).
 It renders (in a bpy worker process) whenever the true plate angle on `sim/plate_state` changes.
 The service `sim/set_object_visible` (std_srvs/SetBool) lifts the object off the plate and puts it
-back: what a person does for the empty-plate background sweep.
+back: what a person does for the empty-plate background sweep. The service `sim/turn_over` (std_srvs/SetBool)
+turns the object over between the sweeps of a two-placement capture: true lays it as the session's second
+placement (`n2d_sim.session.SECOND_PLACEMENT_DEG` of the object, on its side or upside down), false back as
+`world.placement_deg` says; `sim/object_pose` follows.
 While the plate stands still it republishes the last render with fresh noise at `rate_hz` (while anyone
 subscribes), stamped now; while it moves it publishes each finished render stamped with the time of the
 angle it shows, so the rate drops during motion rather than showing an old scene with a new stamp.
@@ -34,6 +37,7 @@ from n2d_common.ros import (
     stamp_msg,
 )
 from n2d_sim.camera import SimCamera, SimFrame
+from n2d_sim.session import turned
 from n2d_sim.world import SimWorldConfig
 
 
@@ -75,10 +79,12 @@ class SimCameraNode(Node):
         self.mask_pub = self.create_publisher(Image, "sim/object_mask", PUBLISH_QOS)
         self.create_subscription(JointState, "sim/plate_state", self.on_plate_state, SENSOR_QOS)
         self.create_service(SetBool, "sim/set_object_visible", self.on_set_visible)
+        self.create_service(SetBool, "sim/turn_over", self.on_turn_over)
         self._changed = threading.Condition()
         self._angle: tuple[float, float] | None = None  # (angle_rad, stamp_s) of the latest plate state
         self._frame: SimFrame | None = None
         self._visible = True
+        self._placement = self._frame_placement = self.cfg.world.placement_deg
         self._running = True
         self.camera = SimCamera(self.cfg.world)
         self.camera.start()
@@ -101,9 +107,20 @@ class SimCameraNode(Node):
         response.message = "object on the plate" if request.data else "object lifted off the plate"
         return response
 
+    def on_turn_over(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        placement = (turned(self.cfg.world) if request.data else self.cfg.world).placement_deg
+        self.camera.place(placement)  # waits for a render in progress
+        with self._changed:
+            self._placement = placement
+            self._changed.notify()
+        response.success = True
+        response.message = f"object placed at {list(placement)} deg (x, y, z)"
+        return response
+
     def _current(self, frame: SimFrame | None, angle: tuple[float, float] | None) -> bool:
         """Whether `frame` shows the scene as it is now."""
         return (frame is not None and angle is not None and frame.object_visible == self._visible
+                and self._frame_placement == self._placement
                 and abs(angle[0] - frame.angle_rad) < self.cfg.angle_epsilon_rad)
 
     def on_timer(self) -> None:
@@ -120,9 +137,12 @@ class SimCameraNode(Node):
                     self._changed.wait(0.5)
                 if not self._running:
                     return
-                (angle, stamp), visible = self._angle, self._visible
+                (angle, stamp), visible, placement = self._angle, self._visible, self._placement
             frame = self.camera.render(angle, object_visible=visible)
-            self._frame = frame
+            with self._changed:
+                if placement != self._placement:  # turned over while it rendered: render again
+                    continue
+                self._frame, self._frame_placement = frame, placement
             self.publish(frame, stamp)
 
     def publish(self, frame: SimFrame, stamp_s: float) -> None:
