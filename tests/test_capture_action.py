@@ -25,8 +25,8 @@ from n2d_interfaces.action import Capture
 
 pytestmark = pytest.mark.slow  # real rendering, training or ROS round trips: tens of seconds or more
 
-VIEWS = 12
-"""Enough for the turntable fit; each view is a render, so more only makes the test slower."""
+VIEWS = 6
+"""Enough for the turntable fit (as PLACED_VIEWS below); each view is a render, so more only makes the test slower."""
 
 
 @pytest.mark.timeout(900)
