@@ -1,17 +1,22 @@
 """Fault campaign: kill, interrupt, corrupt, unplug and fill the disk under the real stages, then count.
 
-    python benchmarks/faults.py [--trials 2] [--seed 0] [--only CLASS[,CLASS]] [--work DIR]
-    python benchmarks/faults.py --soak [--soak-frames 1000] [--soak-node-seconds 300]
+    python benchmarks/faults.py [--trials 2] [--seed 0] [--only CLASS[,CLASS]] [--stages STAGE[,STAGE]] [--work DIR]
+    python benchmarks/faults.py --soak [--soak-frames 1000] [--soak-node-seconds 3600] --work DIR
 
 Small configs of the real stages, each run as a user runs it (`python -m n2d.cli dataset|train|reconstruct|
 evaluate`; the capture sweep through `run_sweep`, the real driver and the emulated servo in another process, with
-the rendered camera), in fault classes of `--trials` seeded trials each:
+the rendered camera; the pipeline through `run_pipeline` in another process; dope_node as `n2d launch dope`
+starts it), in fault classes of `--trials` seeded trials each:
 - kill -9 / SIGINT: the stage's process group (the stage and its render or NeuS workers, as a power cut, the OOM
   killer or Ctrl-C in a terminal) at a random time within an uninterrupted run's duration, then the same command
   again. Recovered: it finishes with the uninterrupted run's result (dataset: every frame's files byte for
-  byte; sweep: the same views at the same angles; training: the planned steps, from the checkpoint; fast
-  reconstruction: the same models_info.json). Work lost: frames, views or checkpointed steps that were finished
-  at the kill and redone or missing after the rerun.
+  byte; sweep: the same views at the same angles; DOPE training: the planned steps, from the checkpoint; fast
+  reconstruction: the same models_info.json; NeuS: every planned step, the held-out radiance-field PSNR within
+  0.5 dB and the diameter within 1 % (the notes count reruns bit for bit the uninterrupted network); pipeline: the
+  run complete with the same model, dataset frames and training steps). Work lost: frames, views, checkpointed
+  steps or finished pipeline stages that were finished at the kill and redone or missing after the rerun; steps
+  done after the last checkpoint and done again are shown beside it. dope_node: killed mid-stream and started
+  again, it must publish detections again with its model directory unchanged and no files left behind.
 - corrupt input: an aimed corruption of the stage's input (`n2d_sim.corrupt`: truncated or garbage images, a
   JSON value of another type or a missing key, NaN/inf in poses and intrinsics, a mesh in millimetres or without
   faces, an ONNX model of another shape, another kind or a newer format in n2d.json). Clean: exit code 2 with one
@@ -22,12 +27,13 @@ the rendered camera), in fault classes of `--trials` seeded trials each:
 - full disk: the stage writes into a small tmpfs (a random fraction of the size of its uninterrupted output):
   clean error, no output that looks complete; the tmpfs is then enlarged and the same command resumes. Without
   the privilege to mount, RLIMIT_FSIZE on the writer stands in (a file may not grow past the limit: EFBIG),
-  which the table says.
+  which the table says. (The dataset, DOPE training, fast reconstruction and sweep.)
 One table: fault class, stage, trials, recovered, clean errors, work lost.
 
 `--soak`: 1000 raster dataset frames in one render worker (its resident memory and open file descriptors sampled
-every second: first / last / max, growth over the run) and `dope_node` on a stream for `--soak-node-seconds`
-(latency of the first and the last minute).
+every second: first / last / max, growth over the run) and `dope_node` on a 30 Hz stream for `--soak-node-seconds`
+(default an hour): median latency and the node's CPU time per frame (user + system from /proc, which other jobs on
+the cores do not change) of the first and the last minute, its memory and descriptors first / last / max.
 """
 
 from __future__ import annotations
@@ -335,6 +341,7 @@ class PipelineStage(Stage):
 
     name, unit = "pipeline (run_pipeline)", "stages"
     outputs = ("capture", "model", "dataset", "dope")
+    kept = 0
 
     def __init__(self, work: Path, session: Path):
         super().__init__(work)
@@ -349,7 +356,12 @@ class PipelineStage(Stage):
 
     def lost(self, before: dict, out: Path, rerun: Run) -> int:
         after = _mtimes(out, [out / d / "n2d.json" for d in self.outputs])
+        self.kept += sum(after.get(name) == t for name, t in before.items()) - ("capture/n2d.json" in before)
         return sum(after.get(name) != t for name, t in before.items())
+
+    def summary(self) -> list[str]:
+        kept, self.kept = self.kept, 0
+        return [f"{kept} stages finished at the kills (the given capture aside) and kept as they were"]
 
     def same(self, out: Path, reference: Path) -> bool:
         status = json.loads((out / "run.json").read_text())
@@ -738,6 +750,10 @@ class Replay:
         return None
 
 
+ORT_SESSION_FILE = ".ses"
+"""ONNX Runtime's session-id file in TMPDIR: written by every run, killed or stopped cleanly, and reused."""
+
+
 def _shm_files(pid: int) -> set[Path]:
     """The shared-memory files (/dev/shm) process `pid` has mapped: Fast DDS's segments and ports."""
     try:
@@ -751,14 +767,15 @@ def node_trials(model: Path, frames: list, sig: int, trials: int, rng: random.Ra
                 tally: Tally) -> None:
     """dope_node (started as `n2d launch dope` starts it) on a 30 Hz replay, killed with `sig` a random 0.5-3 s
     after its first detections, then started again. Recovered: it publishes detections again, the model directory
-    is byte for byte as before and the node's temporary directory is empty; shared-memory segments of the killed
-    process still in /dev/shm after the restarted node stopped are counted in the notes."""
+    is byte for byte as before and the node's temporary directory holds nothing but ONNX Runtime's session-id file;
+    the stopped process's own Fast DDS segment files (those it mapped that were new at its start; not the shared
+    port files) still in /dev/shm after the restarted node stopped are counted in the notes."""
     from n2d.launch_description import load
     from n2d.launcher import Launch
     from n2d_common.ros import background_node
 
     domain = 80 + os.getpid() % 10
-    model_before, logs, stale, recover_s = tree_hashes(model), [], 0, []
+    model_before, logs, stale, tracked, recover_s = tree_hashes(model), [], 0, 0, []
     with background_node("faults_camera", domain) as node:
         replay = Replay(node, frames)
         try:
@@ -767,11 +784,14 @@ def node_trials(model: Path, frames: list, sig: int, trials: int, rng: random.Ra
                 shutil.rmtree(tmp, ignore_errors=True)
                 tmp.mkdir(parents=True)
                 env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "TMPDIR": str(tmp)}
+                existing = set(Path("/dev/shm").iterdir())
                 with Launch(load("dope"), {"models": str(model)}, env=env, log=logs.append) as launch:
                     up = replay.wait(time.monotonic(), 5, 180)
                     time.sleep(rng.uniform(0.5, 3.0))
                     proc = launch.procs["dope"]
-                    segments = _shm_files(proc.pid)
+                    segments = {f for f in _shm_files(proc.pid) - existing  # its own segments and their locks
+                                if not f.name.startswith("fastrtps_port")}  # the port files are shared, reused
+                    segments |= {f.with_name(f.name + "_el") for f in segments if Path(f"{f}_el").exists()}
                     os.killpg(proc.pid, sig)
                     try:
                         rc = proc.wait(30)
@@ -781,8 +801,8 @@ def node_trials(model: Path, frames: list, sig: int, trials: int, rng: random.Ra
                 with Launch(load("dope"), {"models": str(model)}, env=env, log=logs.append):
                     back = replay.wait(restart, 5, 180)
                 time.sleep(1.0)
-                left = [p.name for p in tmp.iterdir()]
-                stale += sum(p.exists() for p in segments)
+                left = [p.name for p in tmp.iterdir() if p.name != ORT_SESSION_FILE]
+                stale, tracked = stale + sum(p.exists() for p in segments), tracked + len(segments)
                 tally.trials += 1
                 ok = up is not None and back is not None and tree_hashes(model) == model_before and not left
                 tally.recovered += ok
@@ -790,15 +810,13 @@ def node_trials(model: Path, frames: list, sig: int, trials: int, rng: random.Ra
                 if back is not None:
                     recover_s.append(back)
                 if not ok or rc != (-signal.SIGKILL if sig == signal.SIGKILL else 0):
-                    tally.notes.append(f"trial {i}: first exit {rc}, up {up}, back {back}, left {left[:3]}; "
-                                       f"{logs[-2:]}")
+                    tally.notes.append(f"trial {i}: exit {rc}, up {up}, back {back}, left {left[:3]}; {logs[-1:]}")
                 shutil.rmtree(tmp, ignore_errors=True)
         finally:
             replay.stop.set()
             replay.thread.join(timeout=5)
-    if recover_s:
-        tally.notes.append(f"detections again {min(recover_s):.1f}-{max(recover_s):.1f} s after the restart")
-    tally.notes.append(f"{stale} shared-memory files of the killed node left in /dev/shm")
+    again = f"detections again {min(recover_s):.1f}-{max(recover_s):.1f} s after the restart, " if recover_s else ""
+    tally.notes.append(f"{again}{stale} of its {tracked} shared-memory segment files left in /dev/shm")
 
 
 def _emulator(tmp: Path):
@@ -1064,9 +1082,11 @@ def soak(args) -> None:
     work = Path(args.work or tempfile.mkdtemp(prefix="n2d-faults-"))
     rows = soak_dataset(args.soak_frames, work) if args.soak_frames > 0 else []
     if args.soak_node_seconds > 0:
-        if not (work / "ref-train").is_dir():
-            raise SystemExit(f"--soak-node-seconds needs the campaign's trained model: run the campaign with --work "
-                             f"{work} first")
+        from n2d_sim.objects import sample_object_dir
+
+        ds = work / "ref-dataset"  # the campaign's dataset and tiny DOPE model (kept in --work, else made here)
+        _reference(DatasetStage(work, sample_object_dir("box")), ds)
+        _reference(TrainStage(work, ds), work / "ref-train")
         rows += soak_node(args.soak_node_seconds, work)
     print_table("Soak", rows, ("metric", "value", "note", "goal", "met"))
 
