@@ -150,6 +150,9 @@ class Stage:
 
     name = ""
     unit = ""
+    kill_by_progress = False
+    """Kill at a random percentage of the stage's progress bar (5-95 %) instead of a random time within the
+    uninterrupted run's duration (which varies with the other jobs on the cores)."""
 
     def __init__(self, work: Path):
         self.work = work
@@ -294,6 +297,7 @@ class NeusStage(ReconstructStage):
 
     name, unit = "reconstruct (NeuS tiny)", "steps"
     compared = identical = 0
+    kill_by_progress = True
 
     def command(self, out: Path, session: Path | None = None) -> list[str]:
         return CLI + ["reconstruct", str(session or self.session), str(out), "--method", "neus", *NEUS_SET]
@@ -342,6 +346,7 @@ class PipelineStage(Stage):
     name, unit = "pipeline (run_pipeline)", "stages"
     outputs = ("capture", "model", "dataset", "dope")
     kept = 0
+    kill_by_progress = True
 
     def __init__(self, work: Path, session: Path):
         super().__init__(work)
@@ -379,7 +384,30 @@ def _start(cmd: list[str]) -> subprocess.Popen:
                             start_new_session=True)
 
 
-def _stop(proc: subprocess.Popen, sig: int) -> Run:
+class _Stderr:
+    """The stderr of a running stage, read as it comes (its progress bar redraws without newlines)."""
+
+    def __init__(self, proc: subprocess.Popen):
+        import threading
+
+        self.chunks: list[bytes] = []
+        self.thread = threading.Thread(target=self._read, args=(proc.stderr.fileno(),), daemon=True)
+        self.thread.start()
+
+    def _read(self, fd: int) -> None:
+        while chunk := os.read(fd, 4096):
+            self.chunks.append(chunk)
+
+    def text(self) -> str:
+        return b"".join(self.chunks).decode(errors="replace")
+
+    def percent(self) -> int:
+        """The progress bar's last percentage."""
+        found = re.findall(r"(\d+)%\|", b"".join(self.chunks[-8:]).decode(errors="replace"))
+        return int(found[-1]) if found else 0
+
+
+def _stop(proc: subprocess.Popen, sig: int, stderr: _Stderr | None = None) -> Run:
     """Send `sig` to the process group of `proc` (a terminal's Ctrl-C reaches the whole group) and wait."""
     if proc.poll() is None:
         try:
@@ -387,10 +415,13 @@ def _stop(proc: subprocess.Popen, sig: int) -> Run:
         except ProcessLookupError:
             pass
     try:
-        _, err = proc.communicate(timeout=120)
+        _, err = proc.communicate(timeout=120) if stderr is None else (proc.wait(timeout=120), "")
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        _, err = proc.communicate()
+        _, err = proc.communicate() if stderr is None else (proc.wait(), "")
+    if stderr is not None:
+        stderr.thread.join(timeout=10)
+        err = stderr.text()
     return Run(proc.returncode, "", err, 0.0)
 
 
@@ -403,13 +434,17 @@ def _again(stage: Stage, out: Path, first: Run) -> Run:
 
 def kill_trials(stage: Stage, reference: Path, ref_s: float, sig: int, trials: int, rng: random.Random,
                 tally: Tally) -> None:
+    points = []
     for i in range(trials):
         out = stage.work / f"{re.sub(r'[^a-z0-9]+', '-', stage.name.lower()).strip('-')}-{sig}-{i}"
         proc = _start(stage.command(out))
-        deadline = time.monotonic() + rng.uniform(0.25, 0.9) * ref_s
-        while proc.poll() is None and time.monotonic() < deadline:
+        stderr = _Stderr(proc) if stage.kill_by_progress else None
+        deadline, target = time.monotonic() + rng.uniform(0.25, 0.9) * ref_s, rng.uniform(5, 95)
+        while proc.poll() is None and (stderr.percent() < target if stderr else time.monotonic() < deadline):
             time.sleep(0.05)
-        first = _stop(proc, sig)
+        first = _stop(proc, sig, stderr)
+        if stderr is not None:
+            points.append(f"{stderr.percent()} %" if first.rc != 0 else "finished")
         before = stage.finished(out)
         rerun = _again(stage, out, first)
         tally.trials += 1
@@ -420,7 +455,7 @@ def kill_trials(stage: Stage, reference: Path, ref_s: float, sig: int, trials: i
         tally.redone += stage.redone(first, before)
         if not ok:
             tally.notes.append(f"trial {i}: rerun exit {rerun.rc}: {rerun.stderr.strip().splitlines()[-1:]}")
-    tally.notes += stage.summary()
+    tally.notes += ([f"killed at {', '.join(points)} of the progress bar"] if points else []) + stage.summary()
 
 
 def corrupt_trials(kind: str, valid: Path, command, work: Path, trials: int, rng: random.Random,
