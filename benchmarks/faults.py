@@ -379,9 +379,15 @@ class PipelineStage(Stage):
                 and training["steps"] == training["planned_steps"])
 
 
+def _default_sigint() -> None:
+    """preexec_fn of a stage under test: Ctrl-C as in a terminal, even when the campaign runs in the background
+    (where a shell starts it with SIGINT ignored, which its children inherit: a SIGINT trial would do nothing)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(cmd: list[str]) -> subprocess.Popen:
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=_default_sigint)
 
 
 class _Stderr:
