@@ -4,6 +4,7 @@ export, evaluation, the `n2d train` / `n2d evaluate` CLI and bad input."""
 
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -143,6 +144,21 @@ def test_metrics():
     assert s["add_accuracy_10pct"] == pytest.approx(1 / 3) and s["adds_accuracy_10pct"] == pytest.approx(2 / 3)
     assert s["detected"] == 2 and s["adds_median_mm"] == pytest.approx(5.0)
 
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_the_steps_trained_since_the_last_checkpoint(dataset, tmp_path):
+    """SIGINT (Ctrl-C in the CLI) long before the next timed checkpoint: the steps done are saved (a rerun resumes
+    a checkpoint: test_train_cancel_resume_export_evaluate)."""
+    cfg = TrainConfig.preset("tiny")
+    cfg.epochs, cfg.checkpoint_every_s, cfg.int8 = 3, 3600.0, False
+
+    def ctrl_c_after_two(p):
+        if p.info.get("step") == 2:
+            signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt):
+        train(dataset, tmp_path / "dope", cfg, progress=ctrl_c_after_two)
+    assert load_checkpoint(tmp_path / "dope.partial" / "checkpoint.pt")["position"]["step"] == 2
 
 @pytest.mark.slow
 def test_train_cancel_resume_export_evaluate(dataset, tmp_path):

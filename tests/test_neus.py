@@ -1,6 +1,7 @@
 """NeuS hash-grid field: encoding gradients, training on a small simulated session, cancel/resume, divergence,
 pretraining to an initial SDF, save/load, the smoothness loss. CPU, "tiny" preset; asserts outcomes, never times."""
 
+import signal
 import threading
 from dataclasses import replace
 
@@ -325,3 +326,50 @@ def test_training_applies_the_smoothness_loss(session, tmp_path):
     points = np.random.default_rng(2).uniform(aabb[0], aabb[1], (2000, 3))
     a, b = plain.sdf(points), smooth.sdf(points)
     assert np.isfinite(b).all() and np.abs(a - b).max() > 1e-4
+
+
+def _weights(workdir) -> dict:
+    return load_checkpoint(workdir / "neus.pt")["network"]
+
+
+def _same_weights(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_ctrl_c_saves_the_steps_done_and_the_rerun_ends_as_an_uninterrupted_run(session, tmp_path):
+    """SIGINT (Ctrl-C in the CLI) between checkpoints: the steps done are saved, the rerun starts there and ends
+    with the uninterrupted run's weights."""
+    data, aabb, _ = session
+    cfg = replace(NeusConfig.preset("tiny"), steps=30, checkpoint_every=1000)
+
+    def ctrl_c_at_20(p):
+        if p.info.get("step", 0) >= 20:
+            signal.raise_signal(signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt):
+        train_neus(data.train, aabb, cfg, workdir=tmp_path / "a", progress=ctrl_c_at_20)
+    assert load_checkpoint(tmp_path / "a" / "neus.pt")["step"] == 20
+    reports = []
+    train_neus(data.train, aabb, cfg, workdir=tmp_path / "a", progress=reports.append)
+    assert reports[0].message == "starting at step 20/30"
+    train_neus(data.train, aabb, cfg, workdir=tmp_path / "b")
+    assert _same_weights(_weights(tmp_path / "a"), _weights(tmp_path / "b"))
+
+
+def test_a_kill_after_the_checkpoint_at_the_appearance_stage_resumes(session, tmp_path):
+    """The checkpoint written as the NeuS steps end (the appearance stage not begun) resumes into the appearance
+    stage: a run stopped without saving after it (a kill) ends with the uninterrupted run's weights."""
+    data, aabb, _ = session
+    cfg = replace(NeusConfig.preset("tiny"), steps=20, checkpoint_every=10,
+                  appearance=replace(NeusConfig.preset("tiny").appearance, steps=10))
+
+    def killed_at_25(p):
+        if p.info.get("step", 0) >= 25:
+            raise SystemExit("killed")  # no save: what kill -9 leaves
+
+    with pytest.raises(SystemExit):
+        train_neus(data.train, aabb, replace(cfg, progress_every=5), workdir=tmp_path / "a", progress=killed_at_25)
+    assert load_checkpoint(tmp_path / "a" / "neus.pt")["step"] == 20
+    train_neus(data.train, aabb, cfg, workdir=tmp_path / "a")
+    train_neus(data.train, aabb, cfg, workdir=tmp_path / "b")
+    assert _same_weights(_weights(tmp_path / "a"), _weights(tmp_path / "b"))

@@ -194,42 +194,50 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
 
         net.train()
         stopped_early = False
-        while pos["step"] < total and not stopped_early:
-            epoch, first = divmod(pos["step"], steps_per_epoch)
-            samples.set_epoch(epoch)
-            order = epoch_order(train_frames, cfg.photoreal_mix, np.random.default_rng([cfg.seed, epoch]))
-            epoch_losses = []
-            for _, (images, beliefs, affinities), weight in _batches(samples, order, cfg.batch_size, first, ranks):
-                for group in opt.param_groups:
-                    group["lr"] = learning_rate(cfg, done(pos))
-                loss = dope_loss(model(images.to(device, memory_format=fmt)), beliefs.to(device),
-                                 affinities.to(device), cfg.peak_weight)
-                if not torch.isfinite(loss):
-                    raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
-                                   "lower --set lr=..., or re-run with --overwrite")
-                opt.zero_grad(set_to_none=True)
-                (loss * weight if ranks.world > 1 else loss).backward()
-                opt.step()
-                pos["step"] += 1
-                pos["elapsed_s"] = time.monotonic() - t_start
-                value = _agree(loss.item() * weight, pos, ranks)
-                epoch_losses.append(value)
-                fraction = done(pos)
-                progress(Progress(0.95 * fraction, "training", eta(fraction),
-                                  f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {value:.5f}",
-                                  {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": value}))
-                if _rank0_says(cancel is not None and cancel.is_set(), ranks):
-                    save()
-                    raise Cancelled(f"training cancelled at step {pos['step']}/{total}",
-                                    "re-run the same command to resume")
-                if pos["elapsed_s"] >= limit_s:
-                    stopped_early = True
-                    break
-                if time.monotonic() - last_save >= cfg.checkpoint_every_s:
-                    save()
-                    last_save = time.monotonic()
-            pos["losses"].append(float(np.mean(epoch_losses)) if epoch_losses else None)
-            save()
+        updating = False
+        try:
+            while pos["step"] < total and not stopped_early:
+                epoch, first = divmod(pos["step"], steps_per_epoch)
+                samples.set_epoch(epoch)
+                order = epoch_order(train_frames, cfg.photoreal_mix, np.random.default_rng([cfg.seed, epoch]))
+                epoch_losses = []
+                for _, (images, beliefs, affinities), weight in _batches(samples, order, cfg.batch_size, first, ranks):
+                    for group in opt.param_groups:
+                        group["lr"] = learning_rate(cfg, done(pos))
+                    loss = dope_loss(model(images.to(device, memory_format=fmt)), beliefs.to(device),
+                                     affinities.to(device), cfg.peak_weight)
+                    if not torch.isfinite(loss):
+                        raise N2DError(f"the training loss became {loss.item()} at step {pos['step']}",
+                                       "lower --set lr=..., or re-run with --overwrite")
+                    opt.zero_grad(set_to_none=True)
+                    (loss * weight if ranks.world > 1 else loss).backward()
+                    updating = True  # an interrupt until the step is counted leaves the state half stepped
+                    opt.step()
+                    pos["step"] += 1
+                    pos["elapsed_s"] = time.monotonic() - t_start
+                    updating = False
+                    value = _agree(loss.item() * weight, pos, ranks)
+                    epoch_losses.append(value)
+                    fraction = done(pos)
+                    progress(Progress(0.95 * fraction, "training", eta(fraction),
+                                      f"epoch {epoch + 1}/{cfg.epochs} step {pos['step']}/{total} loss {value:.5f}",
+                                      {"epoch": epoch + 1, "step": pos["step"], "steps": total, "loss": value}))
+                    if _rank0_says(cancel is not None and cancel.is_set(), ranks):
+                        save()
+                        raise Cancelled(f"training cancelled at step {pos['step']}/{total}",
+                                        "re-run the same command to resume")
+                    if pos["elapsed_s"] >= limit_s:
+                        stopped_early = True
+                        break
+                    if time.monotonic() - last_save >= cfg.checkpoint_every_s:
+                        save()
+                        last_save = time.monotonic()
+                pos["losses"].append(float(np.mean(epoch_losses)) if epoch_losses else None)
+                save()
+        except KeyboardInterrupt:  # Ctrl-C (the CLI's SIGINT): keep the steps done since the last checkpoint
+            if not updating:
+                save()
+            raise
         if not ranks.main:
             return None
         net.eval().to(memory_format=torch.contiguous_format)

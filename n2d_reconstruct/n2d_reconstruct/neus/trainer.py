@@ -380,8 +380,9 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
 
     init_sdf: optional signed distance (metres, negative inside) of a coarse shape to pretrain the SDF to.
     Steps count on through the appearance stage (cfg.steps + cfg.appearance.steps in all). Checkpoints go to
-    workdir/neus.pt every cfg.checkpoint_every steps, on cancel and at the end; a call finding a checkpoint
-    of the same config, box and views resumes from it (a finished one just loads).
+    workdir/neus.pt every cfg.checkpoint_every steps, on cancel, on Ctrl-C (KeyboardInterrupt, re-raised) and at
+    the end; a call finding a checkpoint of the same config, box and views resumes from it (a finished one just
+    loads).
     Raises Cancelled when `cancel` is set (after saving) and N2DError when the loss stops being finite.
     """
     workdir = Path(workdir)
@@ -402,13 +403,17 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
     elif init_sdf is not None:
         progress(Progress(0.0, "neus", message="fitting the SDF to the initial shape"))
         pretrain_sdf(net, init_sdf, norm, cfg, np.random.default_rng(cfg.seed))
-    opt = _optimizer(net, cfg) if start < cfg.steps else _texture_optimizer(net, cfg)
-    if resumed and state.get("stage") == ("neus" if start < cfg.steps else "texture"):
+    # whose optimizer `opt` is: a checkpoint at step cfg.steps still holds the NeuS one (the appearance stage
+    # starts its own on its first step, a resumed run too), and says so
+    opt_stage = "neus" if start < cfg.steps else "texture"
+    opt = _optimizer(net, cfg) if opt_stage == "neus" else _texture_optimizer(net, cfg)
+    if (resumed and state.get("stage") == opt_stage
+            and len(state["optimizer"]["param_groups"]) == len(opt.param_groups)):  # older checkpoints: not always
         opt.load_state_dict(state["optimizer"])
 
     def save(step: int) -> None:
         atomic_torch_save({**field.state(), "identity": identity, "step": step, "optimizer": opt.state_dict(),
-                           "stage": "neus" if step < cfg.steps else "texture"}, path)
+                           "stage": opt_stage}, path)
 
     sampler = RaySampler(train, norm, cfg.sampler, device)
     spec = cfg.render_spec()
@@ -418,38 +423,45 @@ def train_neus(train: Views, aabb: np.ndarray, cfg: NeusConfig, *, workdir: Path
     progress(Progress(start / max(total, 1), "neus", message=f"starting at step {start}/{total}",
                       info=dict(info)))
     net.train()
-    for step in range(start, total):
-        if cancel is not None and cancel.is_set():
-            save(step)
-            raise Cancelled(f"NeuS training cancelled at step {step}/{total}", f"re-run to resume from step {step}")
-        torch.manual_seed(cfg.seed * 1_000_003 + step)
-        if step < cfg.steps:
-            loss, colour = _neus_step(net, opt, sampler, spec, cfg, step)
-        else:
-            if step == cfg.steps and start < cfg.steps:
-                opt = _texture_optimizer(net, cfg)
-            if texture is None:
-                progress(Progress(step / total, "neus", message="caching surface samples for the appearance stage",
-                                  info=dict(info)))
-                texture = TextureRays(net, sampler, spec, cfg.appearance.samples)
-            for group in opt.param_groups:
-                group["lr"] = group["base_lr"] * _texture_lr_factor(cfg, step - cfg.steps)
-            loss = colour = texture.loss(net, cfg.appearance.rays)
-        value = float(loss.detach())
-        if not math.isfinite(value):
-            raise N2DError(f"NeuS training diverged at step {step} (loss {value})",
-                           f"lower the learning rate (lr={cfg.optim.lr:g}) or raise optim.warmup_steps; re-run")
-        opt.zero_grad(set_to_none=False)
-        loss.backward()
-        opt.step()
-        done = step + 1
-        if done % cfg.progress_every == 0 or done == total:
-            info.update(step=done, loss=value, psnr=-10.0 * math.log10(max(float(colour.detach()), 1e-10)),
-                        inv_s=float(net.inv_s().detach()))
-            progress(Progress(done / total, "neus", eta(done / total), f"step {done}/{total} loss {value:.4f}",
-                              dict(info)))
-        if done % cfg.checkpoint_every == 0 and done < total:
+    done, updating = start, False
+    try:
+        for step in range(start, total):
+            if cancel is not None and cancel.is_set():
+                save(step)
+                raise Cancelled(f"NeuS training cancelled at step {step}/{total}", f"re-run to resume from step {step}")
+            torch.manual_seed(cfg.seed * 1_000_003 + step)
+            if step < cfg.steps:
+                loss, colour = _neus_step(net, opt, sampler, spec, cfg, step)
+            else:
+                if step == cfg.steps and start < cfg.steps:
+                    opt, opt_stage = _texture_optimizer(net, cfg), "texture"
+                if texture is None:
+                    progress(Progress(step / total, "neus", message="caching surface samples for the appearance stage",
+                                      info=dict(info)))
+                    texture = TextureRays(net, sampler, spec, cfg.appearance.samples)
+                for group in opt.param_groups:
+                    group["lr"] = group["base_lr"] * _texture_lr_factor(cfg, step - cfg.steps)
+                loss = colour = texture.loss(net, cfg.appearance.rays)
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise N2DError(f"NeuS training diverged at step {step} (loss {value})",
+                               f"lower the learning rate (lr={cfg.optim.lr:g}) or raise optim.warmup_steps; re-run")
+            opt.zero_grad(set_to_none=False)
+            loss.backward()
+            updating = True  # an interrupt inside the update leaves the weights half stepped: not saved
+            opt.step()
+            updating, done = False, step + 1
+            if done % cfg.progress_every == 0 or done == total:
+                info.update(step=done, loss=value, psnr=-10.0 * math.log10(max(float(colour.detach()), 1e-10)),
+                            inv_s=float(net.inv_s().detach()))
+                progress(Progress(done / total, "neus", eta(done / total), f"step {done}/{total} loss {value:.4f}",
+                                  dict(info)))
+            if done % cfg.checkpoint_every == 0 and done < total:
+                save(done)
+    except KeyboardInterrupt:  # Ctrl-C (the CLI's SIGINT): keep the steps done since the last checkpoint
+        if not updating and done > start:
             save(done)
+        raise
     if not resumed or start < total:
         save(total)
     net.eval()
