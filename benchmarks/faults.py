@@ -341,7 +341,8 @@ class NeusStage(ReconstructStage):
 
 class PipelineStage(Stage):
     """`run_pipeline` over one run directory: the given capture, then reconstruct, dataset, train and evaluate, each
-    stage the library call its node makes for a goal (`LocalStages`), in a child process."""
+    stage the library call its node makes for a goal (`n2d.local_stages.LibraryStages`, as `n2d pipeline` runs it), in
+    a child process."""
 
     name, unit = "pipeline (run_pipeline)", "stages"
     outputs = ("capture", "model", "dataset", "dope")
@@ -659,46 +660,6 @@ def _as_cli(job) -> int:
     return 0
 
 
-class LocalStages:
-    """The StageRunner of the pipeline trials: each stage is the library call its node makes for a goal (the same
-    configs from the same overrides, resuming unfinished work), in this process instead of behind an action."""
-
-    def capture(self, *args, **kwargs) -> dict:
-        raise AssertionError("the pipeline trials are given their capture session")
-
-    def reconstruct(self, session_dir: Path, model_dir: Path, overrides: dict, *, progress, cancel) -> dict:
-        from n2d_common.config import from_dict, merge, to_dict
-        from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
-
-        cfg = from_dict(ReconstructConfig, merge(to_dict(ReconstructConfig()), overrides), "reconstruct")
-        return {"model": reconstruct(session_dir, model_dir, cfg, progress=progress, cancel=cancel)["model"]}
-
-    def dataset(self, model_dir: Path, dataset_dir: Path, frames: int, seed: int, overrides: dict, *, progress,
-                cancel) -> dict:
-        from n2d_common.config import from_dict, merge, to_dict
-        from n2d_dataset.config import DatasetConfig
-        from n2d_dataset.generate import generate_dataset
-
-        cfg = from_dict(DatasetConfig, merge(to_dict(DatasetConfig()), {**overrides, "frames": frames, "seed": seed}))
-        summary = generate_dataset([model_dir], dataset_dir, cfg, progress=progress, cancel=cancel)
-        return {k: summary[k] for k in ("frames", "resumed_frames")}
-
-    def train(self, dataset_dir: Path, dope_dir: Path, object_name: str, preset: str, overrides: dict, *, progress,
-              cancel) -> dict:
-        from n2d_common.config import from_dict, merge, to_dict
-        from n2d_dope.config import TrainConfig
-        from n2d_dope.train import train
-
-        cfg = from_dict(TrainConfig, merge(to_dict(TrainConfig.preset(preset)), overrides), "train")
-        summary = train(dataset_dir, dope_dir, cfg, object_name=object_name, progress=progress, cancel=cancel)
-        return {k: summary[k] for k in ("steps", "planned_steps")}
-
-    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], *, progress, cancel) -> dict:
-        from n2d.pipeline import evaluate_run
-
-        return evaluate_run(dope_dir, tests, precisions, progress=progress, cancel=cancel)
-
-
 def child_pipeline(args) -> int:
     """The pipeline into the run directory `args.child_pipeline` (what the campaign kills): the run's manifest and
     its capture stage as an earlier call leaves them (the session copied in), then `run_pipeline` as the node runs
@@ -706,6 +667,7 @@ def child_pipeline(args) -> int:
     import threading
 
     from n2d.cli import _progress_bar
+    from n2d.local_stages import LibraryStages
     from n2d.pipeline import PipelineConfig, run_pipeline
     from n2d_common.config import from_dict, to_dict
     from n2d_common.contracts import read_manifest, write_manifest
@@ -723,7 +685,7 @@ def child_pipeline(args) -> int:
             shutil.copytree(args.session, copy)
             copy.rename(run / "capture")
         try:
-            run_pipeline(run, "box", cfg, LocalStages(), progress=_progress_bar("pipeline"), cancel=cancel)
+            run_pipeline(run, "box", cfg, LibraryStages(), progress=_progress_bar("pipeline"), cancel=cancel)
         except KeyboardInterrupt:
             cancel.set()
             raise
