@@ -777,7 +777,7 @@ def node_trials(model: Path, frames: list, sig: int, trials: int, rng: random.Ra
     from n2d.launcher import Launch
     from n2d_common.ros import background_node
 
-    domain = 80 + os.getpid() % 10
+    domain = 89 + os.getpid() % 4  # outside the tests' 1..88 (tests/conftest.py)
     model_before, logs, stale, tracked, recover_s = tree_hashes(model), [], 0, 0, []
     with background_node("faults_camera", domain) as node:
         replay = Replay(node, frames)
@@ -1044,7 +1044,7 @@ def soak_node(seconds: float, work: Path) -> list[tuple]:
     from n2d.launcher import Launch
     from n2d_common.ros import background_node
 
-    domain, logs, samples = 70 + os.getpid() % 10, [], []
+    domain, logs, samples = 93 + os.getpid() % 4, [], []  # outside the tests' 1..88
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain)}
     with background_node("soak_camera", domain) as node:
         replay = Replay(node, _replay(work / "ref-dataset"))
