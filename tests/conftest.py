@@ -2,6 +2,7 @@
 
 import itertools
 import os
+import secrets
 import subprocess
 import sys
 import tempfile
@@ -12,6 +13,9 @@ import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("HOME", "/tmp")
+# Every Ray of the tests (in this process and the nodes they start) takes one token of this run, whatever ~/.ray
+# holds, and sends no telemetry; set before any import of Ray, which reads its auth settings once per process.
+os.environ.update({"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)})
 
 # Domain ids 1..88, offset by the process id so parallel test runs on one machine do not meet; the benchmarks
 # that start nodes use 89..100 (below 102: higher ids reach into Linux's ephemeral port range).

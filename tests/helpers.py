@@ -1,7 +1,6 @@
 """Small helpers shared by the test files (import as `from helpers import ...`)."""
 
 import os
-import secrets
 import shutil
 import signal
 import socket
@@ -86,8 +85,6 @@ def list_parameters(node, node_name: str, timeout_s: float = 30.0) -> list[str]:
         node.destroy_client(client)
 
 
-ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
-"""No telemetry; the test cluster's own token (nodes and driver), whatever ~/.ray holds."""
 RAY_START = ("import ray._private.services as s; s.resolve_ip_for_localhost = lambda host: host; "
              "from ray.scripts.scripts import main; main()")
 """`ray start` that keeps --node-ip-address=127.0.0.1 (Ray swaps loopback for the machine's address on a
@@ -121,7 +118,7 @@ class LocalCluster:
             args += [f"--address=127.0.0.1:{self.port}"]
         log = Path(self.temp) / f"{name}.log"
         with log.open("w") as f:  # a file, not a pipe: the node's daemons keep it open
-            proc = subprocess.Popen(args, env=os.environ | ENV, start_new_session=True, stdout=f, stderr=f)
+            proc = subprocess.Popen(args, start_new_session=True, stdout=f, stderr=f)
         self.groups[name] = proc.pid
         assert proc.wait(timeout=60) == 0, log.read_text()[-3000:]
 

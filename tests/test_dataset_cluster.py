@@ -4,7 +4,6 @@ run's; bad clusters give clear errors and no dataset that looks complete."""
 
 import errno
 import hashlib
-import os
 import socket
 import subprocess
 import sys
@@ -13,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import ENV, LocalCluster, free_port
+from helpers import LocalCluster, free_port
 
 from n2d_common.cluster import Node
 from n2d_common.config import load_config
@@ -47,12 +46,10 @@ def plain(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_killed_worker_and_head_resume_to_the_same_dataset(plain, tmp_path, monkeypatch):
+def test_killed_worker_and_head_resume_to_the_same_dataset(plain, tmp_path):
     """Two nodes render; the worker node is killed after the first frame (its frame goes to the head's slot);
     then a run whose head (with the driver on it) is killed resumes on a new cluster. Both datasets are the
     one-machine dataset, file for file (sha256)."""
-    for k, v in ENV.items():  # before Ray is imported: it reads its auth settings once
-        monkeypatch.setenv(k, v)
     import ray  # noqa: F401  installed by install.sh (pinned): a missing Ray is a failure, not a skip
 
     nodes = LocalCluster()
@@ -75,7 +72,7 @@ def test_killed_worker_and_head_resume_to_the_same_dataset(plain, tmp_path, monk
         out = tmp_path / "head_killed"
         cli = subprocess.Popen([sys.executable, "-m", "n2d.cli", "dataset", str(MODELS[0]), str(out), "--cluster",
                                 nodes.address, *(a for s in SMALL for a in ("--set", s))],
-                               env=os.environ | ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         records = out.with_name(out.name + ".partial") / RECORDS
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and cli.poll() is None and len(list(records.glob("*.json"))) < 2:

@@ -13,7 +13,7 @@ import sys
 
 import pytest
 import yaml
-from helpers import ENV, LocalCluster, free_port
+from helpers import LocalCluster, free_port
 
 from n2d.cli import main
 from n2d_common.contracts import open_stage, read_manifest
@@ -44,9 +44,7 @@ def _pipeline(run_dir, objects, config, *more):
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_objects_on_a_cluster_fail_alone_and_resume(inputs, tmp_path, monkeypatch):
-    for k, v in ENV.items():
-        monkeypatch.setenv(k, v)
+def test_objects_on_a_cluster_fail_alone_and_resume(inputs, tmp_path):
     config, objects = inputs
     runs = tmp_path / "runs"
     nodes = LocalCluster()

@@ -15,7 +15,7 @@ import shutil
 import socket
 import tempfile
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -72,15 +72,29 @@ def _import_ray() -> ModuleType:
     return ray
 
 
-def _stay_on_loopback() -> None:
-    """Keep a one-machine Ray on loopback. Ray swaps a loopback address for the machine's network address unless
-    it believes it runs without a cluster (its switch for Windows and macOS, read from the environment by the
-    processes it starts and as a constant in this one); n2d sets that switch for `local` and loopback clusters,
-    so no Ray server of theirs listens beyond this machine."""
-    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+_CLUSTER_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+@contextmanager
+def _stay_on_loopback() -> Iterator[None]:
+    """Keep a one-machine Ray on loopback while the connection lasts. Ray swaps a loopback address for the
+    machine's network address unless it believes it runs without a cluster (its switch for Windows and macOS,
+    read from the environment by the processes it starts and as a constant in this one); n2d sets that switch
+    for `local` and loopback clusters, so no Ray server of theirs listens beyond this machine, and puts both
+    back afterwards, so a later `ray start` from this process may still join nodes."""
     from ray._private import ray_constants
 
+    before_env, before_constant = os.environ.get(_CLUSTER_SWITCH), ray_constants.ENABLE_RAY_CLUSTER
+    os.environ[_CLUSTER_SWITCH] = "0"
     ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = before_constant
+        if before_env is None:
+            os.environ.pop(_CLUSTER_SWITCH, None)
+        else:
+            os.environ[_CLUSTER_SWITCH] = before_env
 
 
 @contextmanager
@@ -94,31 +108,28 @@ def connect(address: str) -> Iterator[ModuleType]:
         yield ray
         return
     kwargs: dict = {"log_to_driver": False, "logging_level": "warning"}
+    loopback = address == LOCAL or (address != AUTO and _is_loopback(_host_port(address)[0]))  # local, tests
     tmp = None
     if address == LOCAL:
-        _stay_on_loopback()
         tmp = tempfile.mkdtemp(prefix="n2d_ray_", dir="/tmp" if os.path.isdir("/tmp") else None)
         kwargs |= {"include_dashboard": False, "_temp_dir": tmp}
-    elif address != AUTO:
-        if _is_loopback(_host_port(address)[0]):
-            _stay_on_loopback()  # a cluster of this machine's loopback (tests)
-        kwargs["address"] = address
     else:
-        kwargs["address"] = AUTO
-    try:
-        ray.init(**kwargs)
-    except (ConnectionError, RuntimeError, ValueError) as exc:
-        if tmp:
-            shutil.rmtree(tmp, ignore_errors=True)
-        raise N2DError(f"could not connect to the Ray cluster {address!r}: {exc}",
-                       "check that `ray status` on the head lists the nodes, and that this machine runs the same "
-                       "Ray and Python versions") from None
-    try:
-        yield ray
-    finally:
-        ray.shutdown()
-        if tmp:
-            shutil.rmtree(tmp, ignore_errors=True)
+        kwargs["address"] = address
+    with _stay_on_loopback() if loopback else nullcontext():
+        try:
+            ray.init(**kwargs)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            if tmp:
+                shutil.rmtree(tmp, ignore_errors=True)
+            raise N2DError(f"could not connect to the Ray cluster {address!r}: {exc}",
+                           "check that `ray status` on the head lists the nodes, and that this machine runs the "
+                           "same Ray and Python versions") from None
+        try:
+            yield ray
+        finally:
+            ray.shutdown()
+            if tmp:
+                shutil.rmtree(tmp, ignore_errors=True)
 
 
 def nodes(ray: ModuleType) -> list[Node]:
