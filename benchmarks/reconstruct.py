@@ -17,9 +17,10 @@ judged against it (against the noisy photo even a perfect model is capped: that 
 One table for all methods.
 
     python benchmarks/reconstruct.py --placements 2 [--objects mug,spray,bracket] [--views 24] [--size 320x240]
+                                     [--methods fast,neus] [--neus-preset cpu]
 
 Two placements: per suite object, a session rendered with exact poses and masks, swept standing and again
-turned over (`n2d_sim.session.SECOND_PLACEMENT_DEG`), is registered and fused by the fast path; printed per
+turned over (`n2d_sim.session.SECOND_PLACEMENT_DEG`), is registered and fused by each method; printed per
 object: the registration error against the simulator's truth (degrees, mm), the fused model's Chamfer to the
 whole true mesh (underside included) as a share of the diameter, the underside's own Chamfer (the true surface
 within 10 % of the height of the plate), watertightness, and the underside Chamfer of a one-placement model of the
@@ -41,7 +42,7 @@ from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
-from n2d_sim.session import CONVERGED_SAMPLES, render_session, small_world, turned
+from n2d_sim.session import CONVERGED_SAMPLES, ground_truth, render_session, small_world, turned
 from n2d_sim.suite import suite_object_dir
 from n2d_sim.world import SimWorldConfig
 from table import print_table
@@ -133,21 +134,25 @@ def _placements(args, tmp: Path) -> None:
     """The two-placement benchmark: per object, registration error, fused and underside Chamfer, one-placement
     contrast."""
     width, height = (int(x) for x in args.size.split("x"))
-    rows = []
-    for name in args.objects.split(","):
+    rows, methods = [], args.methods.split(",")
+    for name, method in ((n, m) for n in args.objects.split(",") for m in methods):
         model_dir = suite_object_dir(name)
         world = replace(small_world(str(model_dir), width, height), samples=args.samples, background_samples=16)
         results = {}
         for placements in (2, 1):
             session = tmp / f"{name}_{placements}"
             t0 = time.perf_counter()
-            truth = render_session(session, world, args.views, placements=[turned(world)] if placements == 2 else ())
+            turns = [turned(world)] if placements == 2 else []
+            if not session.is_dir():  # the methods share the sessions
+                render_session(session, world, args.views, placements=turns)
+            truth = ground_truth(world, turns)
             render_s = time.perf_counter() - t0
-            cfg = ReconstructConfig(object_name=name)
+            cfg = ReconstructConfig(object_name=name, method=method, neus=NeusConfig.preset(args.neus_preset))
             t0 = time.perf_counter()
-            report = reconstruct(session, (args.out or tmp) / f"model_{name}_{placements}", cfg,
+            report = reconstruct(session, (args.out or tmp) / f"model_{name}_{method}_{placements}", cfg,
                                  ground_truth=model_dir, overwrite=True)
             results[placements] = (report, time.perf_counter() - t0, render_s, truth)
+        name = f"{name} ({method})" if len(methods) > 1 or method != "fast" else name
         report, wall_s, render_s, truth = results[2]
         g, entry = report["geometry"], report["placements"]["registered"][0]
         deg, mm = _registration_error(entry["T_first_placement"], truth)
@@ -168,8 +173,8 @@ def _placements(args, tmp: Path) -> None:
         rows.append((name, "watertight", _met(closed), "yes", _met(closed)))
         rows.append((name, "time: render, reconstruct (registration)",
                      f"{render_s:.0f} s, {wall_s:.0f} s ({report['timings_s']['load']:.0f} s)", "", ""))
-    print_table(f"Two-placement reconstruction benchmark (fast path; {args.views} views per placement, {args.size}, "
-                f"exact poses and masks, {args.samples} samples; this machine)", rows,
+    print_table(f"Two-placement reconstruction benchmark ({args.methods}; {args.views} views per placement, "
+                f"{args.size}, exact poses and masks, {args.samples} samples; this machine)", rows,
                 ("object", "metric", "value", "goal", "met"))
 
 
