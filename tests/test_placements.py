@@ -24,7 +24,7 @@ VIEWS = 12
 SIZE = (160, 120)
 FAST = PlacementsConfig(up_directions=100, yaw_steps=24, starts=4, refined=1, voxel_m=0.002)
 """A smaller search than the default, for the refusals (the right answer is not needed there) and, with two
-candidates refined, for the stage tests (the mug's registration is tested with the default search)."""
+candidates refined, for the NeuS stage test (the registration itself is tested with the default search)."""
 
 
 def test_a_turned_placement_lies_on_its_lowest_vertex_and_upright_is_unchanged():
@@ -147,7 +147,7 @@ def test_a_box_fits_its_masks_in_four_poses_and_the_photos_pick_the_true_one(tmp
 @pytest.mark.slow
 def test_the_stage_reconstructs_a_two_placement_session_in_the_first_placements_frame(two_placements, tmp_path):
     out, truth = two_placements
-    cfg = ReconstructConfig(object_name="mug", holdout_every=8, placements=replace(FAST, refined=2))
+    cfg = ReconstructConfig(object_name="mug", holdout_every=8)
     cfg.mesh.voxel_m, cfg.mesh.target_faces, cfg.texture.size_px = 0.003, 3000, 128
     cfg.refine.enabled = False
     report = reconstruct(out, tmp_path / "model", cfg, ground_truth=truth.model_dir)
