@@ -34,8 +34,10 @@ TINY = {
                              "refine": {"enabled": False}},
     "pipeline.dataset": {"camera": {"width": 160, "height": 120, "focal_px": 150.0}, "render": {"samples": 2}},
     "pipeline.test_dataset": {"camera": {"width": 160, "height": 120, "focal_px": 150.0}, "render": {"samples": 2}},
-    "pipeline.train": {"epochs": 300, "augment": {"scale": [1.0, 1.0], "rotate_deg": 0.0, "shift": 0.0,
-                                                  "background_swap": 0.0, "noise": 0.0, "blur": 0.0}},
+    # the windows at the tiny frames' own scale (the default recipe's go with its 320 x 320 frames at 900 px)
+    "pipeline.train": {"epochs": 300, "zoom": 1.0, "input_size": [160, 128],
+                       "augment": {"scale": [1.0, 1.0], "rotate_deg": 0.0, "shift": 0.0, "background_swap": 0.0,
+                                   "noise": 0.0, "blur": 0.0}},
 }
 KINDS = {"capture": "capture_session", "test_capture": "capture_session", "reconstruct": "model",
          "dataset": "dataset", "test_dataset": "dataset", "train": "dope_model"}
