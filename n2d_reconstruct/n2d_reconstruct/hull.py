@@ -88,6 +88,12 @@ class VisualHull:
             out[s:s + chunk] = self._chunk(torch.as_tensor(points[s:s + chunk], dtype=torch.float64), k).numpy()
         return out
 
+    def below_plates(self, points: np.ndarray) -> np.ndarray:
+        """The signed distance (metres) of N x 3 points to the space above every plate: positive below any of
+        them (where no object stood), the cut the hull itself makes."""
+        planes = self.plates.numpy()
+        return self.cfg.plate_clearance_m - (points @ planes[:, :3].T + planes[:, 3]).min(axis=1)
+
     def lenient(self, points: np.ndarray, notch_m: float) -> np.ndarray:
         """Signed distances (metres) that forgive one more view where that view alone puts a point more than
         `notch_m` further outside than the next view does (a notch in one mask); the hull itself when no view is

@@ -150,15 +150,7 @@ def _geometry(data, cfg: ReconstructConfig, workdir: Path, cancel, progress: Pro
     # The field is meshed inside the (forgiving) hull grown by its slack, and above every plate: the object lies
     # there, and what NeuS puts elsewhere in its box (floaters where few rays pass) is not the object.
     outer, slack = _forgiving(hull, cfg.hull), max(cfg.hull.slack_px, 0.0) * hull.pixel_m
-    below = _below_plates(data.plates, cfg.hull.plate_clearance_m)
-    return hull, (lambda p: np.maximum(np.maximum(field.sdf(p), outer(p) - slack), below(p))), field
-
-
-def _below_plates(plates: np.ndarray | None, clearance_m: float):
-    """The signed distance of the space below the plates (positive below any of them): the object stood on each,
-    the first placement's at z = clearance, a second placement's across the object."""
-    planes = np.array([[0.0, 0.0, 1.0, 0.0]]) if plates is None else np.asarray(plates, dtype=float)
-    return lambda p: clearance_m - (p @ planes[:, :3].T + planes[:, 3]).min(axis=1)
+    return hull, (lambda p: np.maximum(np.maximum(field.sdf(p), outer(p) - slack), hull.below_plates(p))), field
 
 
 def _meshing(cfg: ReconstructConfig) -> MeshConfig:
