@@ -624,10 +624,12 @@ def _candidate_axes(centre: np.ndarray, moment: np.ndarray, hull: ConvexHull, tr
     if not (low or high):
         return [(a, [2], False) for a in principal]
     features = _feature_directions(centre, hull, triangles, areas)
+    # Equal moments leave their eigenvectors arbitrary (LAPACK's choice, a degree off an exact axis on some
+    # machines), so the hull's features, exact on an exact mesh, go before them.
     if low and high:
-        return [(a, all_orders, True) for a in _merge(principal + features)]
+        return [(a, all_orders, True) for a in _merge(features + principal)]
     main = evecs[:, 2] if low else evecs[:, 0]
-    plane = [d - np.dot(d, main) * main for d in principal + features]
+    plane = [d - np.dot(d, main) * main for d in features + principal]
     plane = [d / np.linalg.norm(d) for d in plane if np.linalg.norm(d) > 0.3]
     return [(main, all_orders, True)] + [(a, [2], False) for a in _merge(plane)]
 
