@@ -25,6 +25,16 @@ object: the registration error against the simulator's truth (degrees, mm), the 
 whole true mesh (underside included) as a share of the diameter, the underside's own Chamfer (the true surface
 within 10 % of the height of the plate), watertightness, and the underside Chamfer of a one-placement model of the
 same first sweep, for contrast.
+
+    python benchmarks/reconstruct.py --suite [--objects all] [--views 36] [--methods fast] [--out DIR]
+                                     [--set KEY=VALUE ...]
+
+The object suite: per suite object (`n2d_sim.suite`: textured, textureless, glossy, dark, concave, thin,
+fine, flat, symmetric), a session captured like `n2d capture` does it (640 x 480, board poses, segmented masks),
+reconstructed by each method with its defaults; printed per object: mask IoU of the capture, Chamfer as a share
+of the diameter, F-score, the bounding-box errors, the held-out textured mesh's PSNR and the wall time; then the
+median over the objects and how many meet each goal. Every object is reported, the bad ones too. `--out` keeps
+the sessions, and a second run over the same `--out` reuses them (e.g. with `--set` to try a phase off).
 """
 
 from __future__ import annotations
@@ -33,17 +43,19 @@ import argparse
 import sys
 import tempfile
 import time
+import traceback
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from n2d_common.config import load_config
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_sim.objects import sample_object_dir
 from n2d_sim.session import CONVERGED_SAMPLES, ground_truth, render_session, small_world, turned
-from n2d_sim.suite import suite_object_dir
+from n2d_sim.suite import SUITE, suite_object_dir
 from n2d_sim.world import SimWorldConfig
 from table import print_table
 
@@ -120,6 +132,81 @@ def _image_scores(heldout: dict, key: str) -> str:
     return f"{heldout[f'{key}_psnr_db']:.2f} dB, {heldout[f'{key}_ssim']:.4f}, {heldout[f'{key}_flip']:.4f}"
 
 
+SUITE_GOALS = {"chamfer_pct": 0.5, "median_chamfer_pct": 0.3, "bbox_pct": BBOX_GOAL_PCT, "seconds": 300}
+"""Reconstruction on the suite (issue 40): fast path Chamfer <= 0.5 % of the diameter on every object and
+<= 0.3 % median, bounding box within 1 %, <= 5 min."""
+
+
+def _suite(args, tmp: Path) -> None:
+    """The suite benchmark: one captured session per object, each method, rows per object and a summary."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from capture import run as capture_run
+
+    from n2d_capture.capture import CaptureConfig
+    from n2d_capture.sweep import SweepConfig
+
+    names = list(SUITE) if args.objects in ("all", "") else args.objects.split(",")
+    methods = args.methods.split(",")
+    out_root = args.out or tmp
+    rows, summary = [], {m: [] for m in methods}
+    goal_pct, bbox_pct, goal_s = SUITE_GOALS["chamfer_pct"], SUITE_GOALS["bbox_pct"], SUITE_GOALS["seconds"]
+    for name in names:
+        model_dir = suite_object_dir(name)
+        session = out_root / f"session_{name}"
+        t0 = time.perf_counter()
+        mask_iou = "kept session"
+        if not (session / "transforms.json").is_file():
+            capture_rows = capture_run(session, SimWorldConfig(object=str(model_dir)),
+                                       CaptureConfig(sweep=SweepConfig(views=args.views)), overwrite=True)
+            mask_iou = next((r[1] for r in capture_rows if r[0].startswith("mask IoU")), "-")
+        capture_s = time.perf_counter() - t0
+        for method in methods:
+            label = f"{name} ({method})" if len(methods) > 1 else name
+            cfg = load_config(ReconstructConfig, overrides=args.set, base=ReconstructConfig(
+                method=method, object_name=name, neus=NeusConfig.preset(args.neus_preset)))
+            t0 = time.perf_counter()
+            try:
+                report = reconstruct(session, out_root / f"model_{name}_{method}", cfg, ground_truth=model_dir,
+                                     overwrite=True)
+            except Exception as exc:  # a failed object is a row of the table, not the end of the benchmark
+                traceback.print_exc()
+                rows.append((label, "reconstruction", f"failed: {type(exc).__name__}: {str(exc).splitlines()[0]}",
+                             "", "NO"))
+                summary[method].append(None)
+                continue
+            wall_s = time.perf_counter() - t0
+            g, h = report["geometry"], report["heldout"] or {}
+            bbox = max(abs(x) for x in g["bbox_size_error_pct"])
+            summary[method].append((g["chamfer_pct_diameter"], bbox, wall_s))
+            rows.append((label, "Chamfer", f"{g['chamfer_mm']:.3f} mm = {g['chamfer_pct_diameter']:.2f} % of diameter",
+                         f"<= {goal_pct} %", _met(g["chamfer_pct_diameter"] <= goal_pct)))
+            rows.append((label, "  F-score at 1 mm, held-out textured mesh PSNR",
+                         f"{g['fscore']:.3f}, " + (f"{h['mesh_psnr_db']:.2f} dB" if "mesh_psnr_db" in h else "-"),
+                         "", ""))
+            rows.append((label, "bbox size error x, y, z", ", ".join(f"{x:+.2f} %" for x in g["bbox_size_error_pct"]),
+                         f"within {bbox_pct} %", _met(bbox <= bbox_pct)))
+            rows.append((label, "time: capture, reconstruct", f"{capture_s:.0f} s, {wall_s:.0f} s",
+                         f"<= {goal_s} s", _met(wall_s <= goal_s)))
+            rows.append((label, "capture mask IoU, mean / min", mask_iou, "", ""))
+    for method, results in summary.items():
+        done = [r for r in results if r is not None]
+        chamfers = [c for c, _, _ in done]
+        median = float(np.median(chamfers)) if chamfers else float("nan")
+        label = f"suite ({method})" if len(methods) > 1 else "suite"
+        goal_median = SUITE_GOALS["median_chamfer_pct"]
+        rows.append((label, "Chamfer: median, worst", f"{median:.2f} %, {max(chamfers, default=float('nan')):.2f} %",
+                     f"<= {goal_median} % median", _met(median <= goal_median)))
+        rows.append((label, "objects within: Chamfer, bbox, time", f"{sum(c <= goal_pct for c in chamfers)}, "
+                     f"{sum(b <= bbox_pct for _, b, _ in done)}, {sum(w <= goal_s for _, _, w in done)} of "
+                     f"{len(results)}", f"all {len(results)}",
+                     _met(len(done) == len(results) and all(c <= goal_pct and b <= bbox_pct and w <= goal_s
+                                                            for c, b, w in done))))
+    print_table(f"Reconstruction on the object suite ({args.methods}; {args.views} views, 640x480, captured "
+                "(board poses, segmented masks); this machine)", rows, ("object", "metric", "value", "goal", "met"))
+    if args.out:
+        print(f"sessions and models: {args.out}/session_<object>, model_<object>_<method> (preview.png, report.json)")
+
+
 PLACEMENT_GOALS = {"deg": 0.5, "mm": 1.0, "chamfer_pct": 0.5}
 """Two placements (issue 43): registration within 0.5 degrees and 1 mm, fused Chamfer <= 0.5 % of the diameter."""
 
@@ -189,10 +276,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, help="keep the models here (default: a temporary directory)")
     parser.add_argument("--placements", type=int, default=1, choices=(1, 2),
                         help="2: the two-placement benchmark over --objects")
-    parser.add_argument("--objects", default="mug,spray,bracket", help="suite objects of the two-placement benchmark")
+    parser.add_argument("--suite", action="store_true", help="the suite benchmark over --objects")
+    parser.add_argument("--objects", default=None,
+                        help="suite objects, comma-separated, or all (default: all with --suite, "
+                        "else mug,spray,bracket)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="reconstruction config override of the suite benchmark, e.g. planes.enabled=false")
     parser.add_argument("--size", default="320x240", help="image size of the two-placement sessions")
     parser.add_argument("--samples", type=int, default=16, help="samples per pixel of the two-placement sessions")
     args = parser.parse_args(argv)
+    if args.objects is None:
+        args.objects = "all" if args.suite else "mug,spray,bracket"
+    if args.suite:
+        with tempfile.TemporaryDirectory(prefix="n2d-bench-suite-") as tmp:
+            _suite(args, Path(tmp))
+        return
     if args.placements == 2:
         with tempfile.TemporaryDirectory(prefix="n2d-bench-placements-") as tmp:
             _placements(args, Path(tmp))

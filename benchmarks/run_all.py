@@ -4,9 +4,10 @@
                                  [--dope-model DIR | --dope-train DIR [--dope-minutes M]] [--dope-test DIR]
                                  [--args NAME='EXTRA ARGS'] [--logs DIR]
 
-Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct, dataset, dope, estimator
-(the default recipe within the demo's budget, trained per object), tracking (refinement and tracking on the
-validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`;
+Benchmarks, in pipeline order: sim_camera, board_poses, masks, capture, reconstruct (the box), reconstruct_suite
+(`reconstruct.py --suite`: every suite object), reconstruct_placements (`reconstruct.py --placements 2`), dataset,
+dope, estimator (the default recipe within the demo's budget, trained per object), tracking (refinement and
+tracking on the validation videos, with the model of `--dope-model`), then pipeline (the whole `n2d demo`;
 `--args pipeline='--run DIR'` reads a finished run instead), then faults (the fault campaign). Each runs as its
 own process (`python benchmarks/NAME.py ...`, the current directory kept) with N2D_BENCH_ROWS set, so that
 `table.print_table` hands its rows over as JSON lines; its output is shown as it runs and kept in a log
@@ -52,14 +53,21 @@ from n2d_common.contracts import atomic_write_text
 HERE = Path(__file__).resolve().parent
 
 STAGES = {"sim_camera": "sim camera", "board_poses": "board poses", "masks": "masks", "capture": "capture",
-          "reconstruct": "reconstruct", "dataset": "dataset", "dope": "dope", "estimator": "estimator",
+          "reconstruct": "reconstruct", "reconstruct_suite": "reconstruct suite",
+          "reconstruct_placements": "reconstruct placements", "dataset": "dataset", "dope": "dope",
+          "estimator": "estimator",
           "tracking": "tracking", "pipeline": "whole pipeline", "faults": "faults"}
-"""Benchmark script name: stage name in the table, in pipeline order."""
+"""Benchmark name: stage name in the table, in pipeline order."""
+SCRIPTS = {"reconstruct_suite": ("reconstruct", ["--suite"]),
+           "reconstruct_placements": ("reconstruct", ["--placements", "2", "--objects", "mug,spray,bracket,duck"])}
+"""Benchmarks that are a mode of another script: name -> (script, its arguments); the others run NAME.py."""
 QUICK = {"sim_camera": ["--angles", "3", "--republish", "10"],
          "board_poses": ["--views", "12"],
          "masks": ["--angles", "2"],
          "capture": ["--views", "8"],
          "reconstruct": ["--views", "12"],
+         "reconstruct_suite": ["--objects", "cube_plain", "--views", "12"],
+         "reconstruct_placements": ["--objects", "mug", "--views", "12"],
          "dataset": ["--frames", "2", "--raster-frames", "10"],
          "dope": ["--views", "4", "--runs", "3", "--node-seconds", "5"],
          "estimator": ["--test-frames", "8", "--set", "frames=60", "--set", "train_minutes=1"],
@@ -153,14 +161,15 @@ def _pump(stream, sinks, tail: collections.deque) -> None:
 
 
 def run_benchmark(name: str, args: list[str], log: Path) -> tuple[int, list[dict], str, float]:
-    """Run benchmarks/NAME.py with `args`, echoing and logging its output: (exit code, its tables, the last
-    line of its stderr, wall seconds)."""
+    """Run benchmark NAME (benchmarks/NAME.py, or its SCRIPTS entry) with `args`, echoing and logging its output:
+    (exit code, its tables, the last line of its stderr, wall seconds)."""
+    script, fixed = _script(name)
     with tempfile.TemporaryDirectory(prefix="n2d-bench-rows-") as tmp:
         rows_file = Path(tmp) / "rows.jsonl"
         env = dict(os.environ, N2D_BENCH_ROWS=str(rows_file), PYTHONUNBUFFERED="1")
         t0 = time.perf_counter()
         with open(log, "w", encoding="utf-8") as log_file, subprocess.Popen(
-                [sys.executable, str(HERE / f"{name}.py"), *args], env=env, stdout=subprocess.PIPE,
+                [sys.executable, str(HERE / f"{script}.py"), *fixed, *args], env=env, stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE, text=True, errors="replace") as proc:
             out_tail, err_tail = collections.deque(maxlen=1), collections.deque(maxlen=50)
             pumps = [threading.Thread(target=_pump, args=(proc.stdout, [sys.stdout, log_file], out_tail)),
@@ -174,6 +183,10 @@ def run_benchmark(name: str, args: list[str], log: Path) -> tuple[int, list[dict
         tables = [json.loads(line) for line in rows_file.read_text().splitlines()] if rows_file.exists() else []
     last = next((line.strip() for line in reversed(err_tail) if line.strip()), "")
     return code, tables, last, seconds
+
+
+def _script(name: str) -> tuple[str, list[str]]:
+    return SCRIPTS.get(name, (name, []))
 
 
 def _cell(text: str) -> str:
@@ -298,7 +311,8 @@ def main(argv: list[str] | None = None) -> int:
         model_args = ["--model", str(args.dope_model)] if name == "tracking" and args.dope_model else []
         bench_args = (QUICK[name] if args.quick else []) + (dope_args if name == "dope" else []) + model_args \
             + extra[name]
-        shown = shlex.join(["python", _display(str(HERE / f"{name}.py")), *bench_args])
+        script, fixed = _script(name)
+        shown = shlex.join(["python", _display(str(HERE / f"{script}.py")), *fixed, *bench_args])
         if name == "dope" and ("--test" not in bench_args or not {"--model", "--train"} & set(bench_args)):
             rows.append((stage, "not run", "needs --dope-test DIR and --dope-model DIR or --dope-train DIR", "", ""))
             runs.append(f"{stage}: not run (no test dataset, or no model or training dataset given)")

@@ -53,3 +53,25 @@ def test_without_keep_the_file_holds_only_this_run(tmp_path):
     assert run_all.main(["--only", "dope", "--out", str(results), "--logs", str(tmp_path / "logs")]) == 0
     text = results.read_text()
     assert "| masks |" not in text and "| dope | not run |" in text
+
+
+def test_modes_of_one_script_are_benchmarks_of_their_own(tmp_path):
+    run_all = _run_all()
+    assert all(name in run_all.STAGES and name in run_all.QUICK for name in run_all.SCRIPTS)
+    assert run_all._script("reconstruct_suite") == ("reconstruct", ["--suite"])
+    rows = run_all.map_table("reconstruct suite", ["object", "metric", "value", "goal", "met"],
+                             [["mug", "Chamfer", "0.9 mm = 0.8 % of diameter", "<= 0.5 %", "NO"],
+                              ["mug", "  F-score at 1 mm, held-out textured mesh PSNR", "0.91, 21.5 dB", "", ""]])
+    assert rows == [("reconstruct suite (mug)", "Chamfer", "0.9 mm = 0.8 % of diameter", "<= 0.5 %", "NO"),
+                    ("reconstruct suite (mug)", "Chamfer: F-score at 1 mm, held-out textured mesh PSNR",
+                     "0.91, 21.5 dB", "", "")]
+    results = tmp_path / "RESULTS.md"
+    run_all.write_results(results, "m", "2 cores, no GPU", "c", False,
+                          [("reconstruct (fast)", "Chamfer", "0.16 mm", "", ""), *rows],
+                          ["reconstruct: `python benchmarks/reconstruct.py`, 186 s, exit code 0",
+                           "reconstruct suite: `python benchmarks/reconstruct.py --suite`, 3000 s, exit code 0"])
+    # The box's rows and the suite's belong to different benchmarks: refreshing one keeps the other's.
+    kept, runs = run_all.kept_results(results, ["reconstruct"])
+    assert [r[0] for r in kept["reconstruct"]] == ["reconstruct (fast)"] and list(runs) == ["reconstruct"]
+    kept, runs = run_all.kept_results(results, ["reconstruct suite"])
+    assert len(kept["reconstruct suite"]) == 2 and list(runs) == ["reconstruct suite"]
