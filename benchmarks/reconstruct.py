@@ -40,6 +40,7 @@ the sessions, and a second run over the same `--out` reuses them (e.g. with `--s
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -50,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from n2d_common.config import load_config
+from n2d_common.contracts import atomic_write_text
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
@@ -153,13 +155,16 @@ def _suite(args, tmp: Path) -> None:
     for name in names:
         model_dir = suite_object_dir(name)
         session = out_root / f"session_{name}"
-        t0 = time.perf_counter()
-        mask_iou = "kept session"
-        if not (session / "transforms.json").is_file():
+        record = out_root / f"capture_{name}.json"  # what a reused session's capture measured
+        if not (session / "transforms.json").is_file() or not record.is_file():
+            t0 = time.perf_counter()
             capture_rows = capture_run(session, SimWorldConfig(object=str(model_dir)),
                                        CaptureConfig(sweep=SweepConfig(views=args.views)), overwrite=True)
-            mask_iou = next((r[1] for r in capture_rows if r[0].startswith("mask IoU")), "-")
-        capture_s = time.perf_counter() - t0
+            atomic_write_text(record, json.dumps({
+                "mask_iou": next((r[1] for r in capture_rows if r[0].startswith("mask IoU")), "-"),
+                "capture_s": time.perf_counter() - t0}))
+        captured = json.loads(record.read_text())
+        mask_iou, capture_s = captured["mask_iou"], captured["capture_s"]
         for method in methods:
             label = f"{name} ({method})" if len(methods) > 1 else name
             cfg = load_config(ReconstructConfig, overrides=args.set, base=ReconstructConfig(
