@@ -27,14 +27,15 @@ within 10 % of the height of the plate), watertightness, and the underside Chamf
 same first sweep, for contrast.
 
     python benchmarks/reconstruct.py --suite [--objects all] [--views 36] [--methods fast] [--out DIR]
-                                     [--set KEY=VALUE ...]
+                                     [--set KEY=VALUE ...] [--variant NAME]
 
 The object suite: per suite object (`n2d_sim.suite`: textured, textureless, glossy, dark, concave, thin,
 fine, flat, symmetric), a session captured like `n2d capture` does it (640 x 480, board poses, segmented masks),
 reconstructed by each method with its defaults; printed per object: mask IoU of the capture, Chamfer as a share
 of the diameter, F-score, the bounding-box errors, the held-out textured mesh's PSNR and the wall time; then the
 median over the objects and how many meet each goal. Every object is reported, the bad ones too. `--out` keeps
-the sessions, and a second run over the same `--out` reuses them (e.g. with `--set` to try a phase off).
+the sessions, and a second run over the same `--out` reuses them (e.g. with `--set` to try a phase off, and
+`--variant` to keep those models apart).
 """
 
 from __future__ import annotations
@@ -171,8 +172,9 @@ def _suite(args, tmp: Path) -> None:
                 method=method, object_name=name, neus=NeusConfig.preset(args.neus_preset)))
             t0 = time.perf_counter()
             try:
-                report = reconstruct(session, out_root / f"model_{name}_{method}", cfg, ground_truth=model_dir,
-                                     overwrite=True)
+                variant = f"_{args.variant}" if args.variant else ""
+                report = reconstruct(session, out_root / f"model_{name}_{method}{variant}", cfg,
+                                     ground_truth=model_dir, overwrite=True)
             except Exception as exc:  # a failed object is a row of the table, not the end of the benchmark
                 traceback.print_exc()
                 rows.append((label, "reconstruction", f"failed: {type(exc).__name__}: {str(exc).splitlines()[0]}",
@@ -287,6 +289,8 @@ def main(argv: list[str] | None = None) -> None:
                         "else mug,spray,bracket)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="reconstruction config override of the suite benchmark, e.g. planes.enabled=false")
+    parser.add_argument("--variant", default="", help="with --suite: the models go to model_<object>_<method>_VARIANT "
+                        "(the sessions are shared)")
     parser.add_argument("--size", default="320x240", help="image size of the two-placement sessions")
     parser.add_argument("--samples", type=int, default=16, help="samples per pixel of the two-placement sessions")
     args = parser.parse_args(argv)
