@@ -53,6 +53,7 @@ import numpy as np
 
 from n2d_common.config import load_config
 from n2d_common.contracts import atomic_write_text
+from n2d_common.symmetry import AmbiguousSymmetry
 from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.neus.trainer import PRESETS
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
@@ -171,10 +172,17 @@ def _suite(args, tmp: Path) -> None:
             cfg = load_config(ReconstructConfig, overrides=args.set, base=ReconstructConfig(
                 method=method, object_name=name, neus=NeusConfig.preset(args.neus_preset)))
             t0 = time.perf_counter()
+            variant = f"_{args.variant}" if args.variant else ""
             try:
-                variant = f"_{args.variant}" if args.variant else ""
-                report = reconstruct(session, out_root / f"model_{name}_{method}{variant}", cfg,
-                                     ground_truth=model_dir, overwrite=True)
+                try:
+                    report = reconstruct(session, out_root / f"model_{name}_{method}{variant}", cfg,
+                                         ground_truth=model_dir, overwrite=True)
+                except AmbiguousSymmetry as exc:  # the geometry is still measured, the refusal reported
+                    rows.append((label, "symmetry", f"ambiguous, measured with symmetry=none: {exc.message}", "",
+                                 "NO"))
+                    t0 = time.perf_counter()
+                    report = reconstruct(session, out_root / f"model_{name}_{method}{variant}",
+                                         replace(cfg, symmetry="none"), ground_truth=model_dir, overwrite=True)
             except Exception as exc:  # a failed object is a row of the table, not the end of the benchmark
                 traceback.print_exc()
                 rows.append((label, "reconstruction", f"failed: {type(exc).__name__}: {str(exc).splitlines()[0]}",

@@ -26,7 +26,7 @@ from n2d_common.contracts import atomic_write_json, stage_output
 from n2d_common.errors import Cancelled
 from n2d_common.frames import inv_T
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
-from n2d_common.symmetry import Symmetries, find_symmetries, to_models_info
+from n2d_common.symmetry import AmbiguousSymmetry, Symmetries, find_symmetries, to_models_info
 from n2d_reconstruct.data import load_session
 from n2d_reconstruct.denoise import DenoiseConfig, denoise
 from n2d_reconstruct.export import object_frame, write_model
@@ -99,7 +99,12 @@ def _symmetries(tm: TexturedMesh, cfg: ReconstructConfig, progress=None) -> Symm
     """The symmetries of the textured model in its object frame (none when cfg.symmetry is none)."""
     if cfg.symmetry == "none":
         return Symmetries([], [])
-    return find_symmetries(tm.vertices, tm.faces, face_uvs=tm.uvs[tm.faces], texture=tm.albedo)
+    try:
+        return find_symmetries(tm.vertices, tm.faces, face_uvs=tm.uvs[tm.faces], texture=tm.albedo)
+    except AmbiguousSymmetry as exc:  # the hint of a reconstruction: there is no model to edit yet
+        raise AmbiguousSymmetry(exc.message, "reconstruct with --set symmetry=none (no symmetries written), then "
+                                "write them into the model's models_info.json by hand (BOP's symmetries_discrete / "
+                                "symmetries_continuous)", exc.residual) from None
 
 
 class _Phases:
