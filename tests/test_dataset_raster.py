@@ -243,5 +243,5 @@ def test_symmetry_aware_targets(tmp_path):
         assert np.trace(T_canonical[:3, :3]) >= max(np.trace(T[:3, :3] @ S[:3, :3]) for S in poses) - 1e-9
     cfg = TrainConfig.preset("tiny")
     plain = DopeSamples(info.frames, name, cfg, augment=False)
-    aware = DopeSamples(info.frames, name, cfg, augment=False, symmetric=(cuboid, poses))
+    aware = DopeSamples(info.frames, name, cfg, augment=False, symmetric={name: (cuboid, poses)})
     assert aware[0][0].shape == plain[0][0].shape

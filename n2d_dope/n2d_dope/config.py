@@ -70,7 +70,13 @@ class TrainConfig:
     (docs/experiments.md compares zoom 1 and 1.5)."""
     init_model: str = ""
     """A DOPE model directory (from n2d train) whose weights this training starts from instead of ImageNet's:
-    fine-tune a model on more or newer data (same backbone and stages). Empty: start from ImageNet."""
+    fine-tune a model on more or newer data (same backbone and stages). `prior`: the generic prior shipped with
+    n2d_dope (`n2d_dope.prior`: the one-stage lite network trained on other objects, which already finds an
+    object's cuboid corners). Empty: start from ImageNet."""
+    any_object: bool = False
+    """Train one network on every object the datasets show, each frame labelled with all of its objects' cuboids
+    (datasets of different objects may be mixed): a generic prior that other trainings start from
+    (`init_model`), not a detector of one object."""
     epochs: int = 30
     """Passes over the training frames."""
     max_minutes: float = 0.0

@@ -201,7 +201,7 @@ def epoch_order(frames: list[Frame], photoreal_mix: float, rng: np.random.Genera
 def check_mix(info: DatasetInfo, frames: list[Frame], object_name: str, photoreal_mix: float) -> None:
     """ConfigError unless every dataset shows the object and the frames have both kinds a mix asks for."""
     for directory, objects in info.sources.items():
-        if object_name not in objects:
+        if object_name != ANY_OBJECT and object_name not in objects:
             raise ConfigError(f"{directory} shows {', '.join(objects)}, not {object_name}",
                               "train on datasets rendered from the model of the same object")
     if not -1 <= photoreal_mix <= 1 or (photoreal_mix < 0 and photoreal_mix != -1):
@@ -223,10 +223,15 @@ def read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+ANY_OBJECT = "*"
+"""The object name that stands for every object (training a generic prior: `TrainConfig.any_object`)."""
+
+
 def instances(annotation: dict, object_name: str, min_visibility: float) -> list[dict]:
-    """The DOPE entries of `object_name` in one frame's annotation, at least `min_visibility` visible."""
+    """The DOPE entries of `object_name` (every object's for `ANY_OBJECT`) in one frame's annotation, at least
+    `min_visibility` visible."""
     return [o for o in annotation["objects"]
-            if o["class"] == object_name and o.get("visibility", 1.0) >= min_visibility]
+            if object_name in (o["class"], ANY_OBJECT) and o.get("visibility", 1.0) >= min_visibility]
 
 
 def canonical_instance(obj: dict, intrinsics: dict, cuboid_m: np.ndarray, sym_poses: list[np.ndarray]) -> dict:
@@ -294,10 +299,10 @@ class DopeSamples(torch.utils.data.Dataset):
     """
 
     def __init__(self, frames: list[Frame], object_name: str, cfg: TrainConfig, augment: bool,
-                 symmetric: tuple[np.ndarray, list[np.ndarray]] | None = None):
-        """`symmetric`: (the object's 9 x 3 cuboid keypoints, its symmetric poses) for symmetry-aware targets: each
-        instance is labelled with the canonical one of its equivalent poses (`canonical_pose`), so corners the
-        image cannot tell apart never get contradicting labels."""
+                 symmetric: dict[str, tuple[np.ndarray, list[np.ndarray]]] | None = None):
+        """`symmetric`: object name -> (its 9 x 3 cuboid keypoints, its symmetric poses) for symmetry-aware
+        targets: each instance of such an object is labelled with the canonical one of its equivalent poses
+        (`canonical_pose`), so corners the image cannot tell apart never get contradicting labels."""
         self.frames, self.object_name, self.cfg, self.augment = frames, object_name, cfg, augment
         self.symmetric = symmetric
         self.epoch = 0
@@ -314,8 +319,10 @@ class DopeSamples(torch.utils.data.Dataset):
         frame = self.frames[index]
         annotation = json.loads(frame.annotation.read_text())
         shown = instances(annotation, self.object_name, cfg.min_visibility)
-        if self.symmetric is not None:
-            shown = [canonical_instance(o, annotation["camera_data"]["intrinsics"], *self.symmetric) for o in shown]
+        if self.symmetric:
+            intrinsics = annotation["camera_data"]["intrinsics"]
+            shown = [canonical_instance(o, intrinsics, *self.symmetric[o["class"]]) if o["class"] in self.symmetric
+                     else o for o in shown]
         rgb = read_rgb(frame.image)
         size = (rgb.shape[1], rgb.shape[0])
         centre = None

@@ -29,20 +29,35 @@ from n2d_common.errors import Cancelled, ConfigError, ContractError, N2DError
 from n2d_common.progress import Eta, Progress, ProgressFn, no_progress
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint, resolve_device
 from n2d_dope.config import TrainConfig
-from n2d_dope.data import DatasetInfo, DopeSamples, Frame, check_mix, epoch_order, instances, open_datasets
+from n2d_dope.data import (
+    ANY_OBJECT,
+    DatasetInfo,
+    DopeSamples,
+    Frame,
+    check_mix,
+    epoch_order,
+    instances,
+    open_datasets,
+)
 from n2d_dope.distributed import ONE, Ranks, current, launch, shard, share
 from n2d_dope.export import export_onnx, quantize_int8
 from n2d_dope.network import DopeNet, parameter_count
 from n2d_dope.pose_refine import Refiner
+from n2d_dope.prior import PRIOR, PRIOR_DIR, prior_weights
 
 INPUT_CONVENTION = "float32 N x 3 x H x W, RGB, 0..1 (normalisation is inside the network), H and W multiples of 16"
 _NOT_IDENTITY = ("device", "threads", "checkpoint_every_s", "max_minutes", "int8", "calibration_frames")
 """Config fields that do not change the training itself: a checkpoint written with other values still resumes."""
 
 
-def select_object(info: DatasetInfo, object_name: str | None) -> str:
-    """The object to train for: `object_name`, or the dataset's only object."""
+def select_object(info: DatasetInfo, object_name: str | None, any_object: bool = False) -> str:
+    """The object to train for: `object_name`, or the dataset's only object; `ANY_OBJECT` for a generic prior."""
     names = sorted(info.cuboid_points_m)
+    if any_object:
+        if object_name is not None:
+            raise ConfigError(f"any_object trains on every object, but object {object_name!r} was named",
+                              "name no object, or set any_object: false")
+        return ANY_OBJECT
     if object_name is None:
         if len(names) != 1:
             raise ConfigError(f"{info.directory} shows {len(names)} objects ({', '.join(names)})",
@@ -120,6 +135,8 @@ def initial_weights(cfg: TrainConfig) -> dict | None:
     """The weights of `cfg.init_model` to start from (None without one), checked to fit the configured network."""
     if not cfg.init_model:
         return None
+    if cfg.init_model == PRIOR:
+        return prior_weights(cfg.backbone, cfg.stages)
     open_stage(cfg.init_model, "dope_model")
     model = json.loads((Path(cfg.init_model) / "config.json").read_text())
     if (model["backbone"], model["stages"]) != (cfg.backbone, cfg.stages):
@@ -146,7 +163,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
     datasets = [dataset_dir] if isinstance(dataset_dir, (str, Path)) else list(dataset_dir)
     info = open_datasets(datasets)
     initial = initial_weights(cfg)
-    name = select_object(info, object_name)
+    name = select_object(info, object_name, cfg.any_object)
     train_frames, held_frames = split_frames(info, name, cfg)
     check_mix(info, train_frames, name, cfg.photoreal_mix)
     device = resolve_device(cfg.device)
@@ -247,7 +264,7 @@ def train(dataset_dir: str | Path | list[str | Path], out: str | Path, cfg: Trai
         atomic_write_json(stage.path / "training.json", summary)
         inputs = {"dataset" if i == 0 else f"dataset_{i + 1}": Path(d) for i, d in enumerate(datasets)}
         if cfg.init_model:
-            inputs["init_model"] = Path(cfg.init_model)
+            inputs["init_model"] = PRIOR_DIR if cfg.init_model == PRIOR else Path(cfg.init_model)
         stage.finish(config=identity, inputs=inputs, extra={"object": name,
                                                                                   "backbone": cfg.backbone})
     return summary
@@ -273,11 +290,12 @@ def _rank0_says(flag: bool, ranks: Ranks) -> bool:
     return bool(box[0])
 
 
-def symmetric_targets(info: DatasetInfo, name: str, cfg: TrainConfig) -> tuple[np.ndarray, list] | None:
-    """(cuboid keypoints, symmetric poses) of the object when training is symmetry-aware and it has symmetries."""
-    if not cfg.symmetry_aware or name not in info.symmetries:
-        return None
-    return info.cuboid_points_m[name], info.symmetries[name]
+def symmetric_targets(info: DatasetInfo, name: str, cfg: TrainConfig) -> dict[str, tuple[np.ndarray, list]]:
+    """Object name -> (cuboid keypoints, symmetric poses) of the trained object(s) that have symmetries, when
+    training is symmetry-aware (empty otherwise)."""
+    if not cfg.symmetry_aware:
+        return {}
+    return {n: (info.cuboid_points_m[n], poses) for n, poses in info.symmetries.items() if name in (n, ANY_OBJECT)}
 
 
 def held_out_loss(net: DopeNet, info: DatasetInfo, frames: list[Frame], name: str, cfg: TrainConfig,
@@ -336,14 +354,15 @@ def _finish(directory: Path, net: DopeNet, info: DatasetInfo, name: str, train_f
         "trained_focal_px": info.focal_px * (cfg.zoom if cfg.crop else min(cfg.input_size[0] / info.image_size[0],
                                                                       cfg.input_size[1] / info.image_size[1])),
         "cuboid_order": info.cuboid_order,
-        "cuboid_points_m": info.cuboid_points_m[name].tolist(),
-        "symmetry_aware": symmetric_targets(info, name, cfg) is not None,
+        # a generic prior (any_object) has no one cuboid: it is a starting point, not a detector
+        "cuboid_points_m": info.cuboid_points_m[name].tolist() if name in info.cuboid_points_m else None,
+        "symmetry_aware": bool(symmetric_targets(info, name, cfg)),
         "model_frame": "the n2d model frame (bounding-box centre, Z up as it stood)",
         "pose": "T_cam_obj: object frame -> OpenCV camera frame, metres",
         "model_dir": info.models.get(name, ""),
         "opset": cfg.opset,
     }
-    if _copy_object_model(info, name, directory / OBJECT_MODEL):
+    if name != ANY_OBJECT and _copy_object_model(info, name, directory / OBJECT_MODEL):
         progress(Progress(0.98, "exporting", -1.0, "the object's sparse viewpoint model for refinement"))
         Refiner(directory / OBJECT_MODEL, cache_dir=directory)
         config["object_model"] = OBJECT_MODEL
