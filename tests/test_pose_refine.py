@@ -10,6 +10,7 @@ from n2d_common.formats.model import read_textured_model
 from n2d_common.frames import make_T, project
 from n2d_common.raster import rasterize, render_textured
 from n2d_dope.config import RefineConfig
+from n2d_dope.flow import FlowPoints
 from n2d_dope.metrics import add
 from n2d_dope.pose_refine import (
     Refiner,
@@ -32,17 +33,21 @@ def box():
     return TexturedModel(V, F, uvs, albedo), build_region_model(V, F, views=400)
 
 
-def scene(model: TexturedModel, rng: np.random.Generator, distance=(0.4, 0.7)):
-    """A rendered frame of the box over a random background, its true pose and mask."""
+def scene(model: TexturedModel, rng: np.random.Generator, distance=(0.4, 0.7), poses=None):
+    """A rendered frame of the box over a random background, its true pose and mask; with `poses`, the frames of
+    the box at each of them over the same background (a static camera watching it move)."""
     d = rng.normal(size=3)
     T = look_from(d / np.linalg.norm(d), np.zeros(3), rng.uniform(*distance))
     T[:2, 3] += rng.uniform(-0.04, 0.04, 2)
     # a cluttered, muted background (region statistics cannot tell an object from a background of its own colours)
     noise = cv2.resize(rng.integers(0, 256, (12, 16, 3)).astype(np.float64), (640, 480))
     background = (0.5 * noise + 0.5 * noise.mean(2, keepdims=True) * rng.uniform(0.3, 0.8)).astype(np.uint8)
-    rgb, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K, T, 640, 480)
     gain = rng.uniform(0.6, 1.2)  # the light on the object differs from the albedo
-    return np.where(mask[..., None], np.clip(rgb * gain, 0, 255).astype(np.uint8), background), T, mask
+    frames = []
+    for pose in poses or [T]:
+        rgb, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K, pose, 640, 480)
+        frames.append(np.where(mask[..., None], np.clip(rgb * gain, 0, 255).astype(np.uint8), background))
+    return frames if poses else (frames[0], T, mask)
 
 
 def rotation_deg(A, B):
@@ -82,6 +87,29 @@ def test_refinement_recovers_a_perturbed_pose(box):
     assert np.median(rot) < 1.0 and np.median(trans) < 2.0, (rot, trans)
     assert np.median(adds) < 2.0 and np.sum(np.array(adds) < 5.0) >= 7, adds
     assert min(scores) > 0.85
+
+
+def test_texture_points_pin_the_pose(box):
+    """With texture points followed by optical flow from a frame a little before (the tracker's texture term), a
+    pose 5 degrees / 10 mm off comes back to under half a degree and a millimetre."""
+    model, region = box
+    rng = np.random.default_rng(4)
+    flow = FlowPoints(model.vertices, model.faces)
+    rot, trans = [], []
+    for _ in range(8):
+        _, T0, _ = scene(model, rng)
+        moved = make_T(cv2.Rodrigues(rng.normal(size=3) * np.radians(1.5))[0] @ T0[:3, :3],
+                       T0[:3, 3] + rng.normal(size=3) * 0.002)
+        rgb0, rgb1 = scene(model, np.random.default_rng(rng.integers(1 << 30)), poses=(T0, moved))
+        assert flow.select(cv2.cvtColor(rgb0, cv2.COLOR_RGB2GRAY), K, T0) >= 20
+        points = flow.follow(cv2.cvtColor(rgb1, cv2.COLOR_RGB2GRAY))
+        axis, shift = rng.normal(size=3), rng.normal(size=3)
+        start = make_T(cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(5))[0] @ moved[:3, :3],
+                       moved[:3, 3] + 0.010 * shift / np.linalg.norm(shift))
+        refined = refine_pose(rgb1, K, start, region, points=points)
+        rot.append(rotation_deg(refined.T_cam_obj, moved))
+        trans.append(1000 * np.linalg.norm(refined.T_cam_obj[:3, 3] - moved[:3, 3]))
+    assert np.median(rot) < 0.5 and np.median(trans) < 1.0, (np.round(rot, 2), np.round(trans, 2))
 
 
 def test_a_wrong_pose_is_rejected(box):

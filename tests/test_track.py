@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from n2d_common.frames import make_T
+from n2d_common.frames import make_T, transform_points
 from n2d_dataset.sequence import Sequence, SequenceConfig
 from n2d_dope.config import RefineConfig
+from n2d_dope.flow import FlowPoints
 from n2d_dope.infer import Detection
 from n2d_dope.metrics import add_s
 from n2d_dope.pose_refine import Refiner, believable
@@ -125,3 +126,21 @@ def test_bad_config():
     for bad in (dict(redetect_frames=-1), dict(velocity_gain=2.0), dict(max_gap_s=0.0)):
         with pytest.raises(ValueError):
             TrackConfig(**bad)
+
+
+def test_flow_points_land_on_the_model(video, detector):
+    """Texture points picked in one frame at its true pose and followed into the next by optical flow reproject
+    at the next frame's true pose where flow put them: lifted onto the model and followed right."""
+    seq, frames = video
+    textured = detector.refiner.textured
+    flow = FlowPoints(textured.vertices, textured.faces)
+    gray = [cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY) for f in frames[:2]]
+    assert flow.select(gray[0], seq.K, frames[0].T_cam_obj) >= 20
+    X, px = flow.follow(gray[1])
+    assert len(X) >= 15
+    uvw = transform_points(frames[1].T_cam_obj, X) @ seq.K.T
+    error = np.linalg.norm(uvw[:, :2] / uvw[:, 2:3] - px, axis=1)
+    assert np.median(error) < 0.5 and np.percentile(error, 90) < 1.5, np.round(error, 2)
+    assert flow.follow(np.zeros((7, 9), np.uint8)) is None  # another image size: no points, no crash
+    flow.reset()
+    assert flow.follow(gray[1]) is None

@@ -199,6 +199,37 @@ class DetectConfig:
 
 
 @dataclass
+class FlowConfig:
+    """Texture points followed by optical flow from one tracked frame to the next (`n2d_dope.flow`)."""
+
+    points: int = 80
+    """Corners picked inside the silhouette per frame (0: no texture term, silhouette only)."""
+    quality: float = 0.01
+    """Shi-Tomasi quality level: corners weaker than this share of the strongest are not picked."""
+    min_distance_px: int = 6
+    """Least distance between picked corners."""
+    edge_px: int = 3
+    """Corners this close to the silhouette's edge are not picked (their neighbourhood is partly background)."""
+    window_px: int = 15
+    """Lucas-Kanade window."""
+    levels: int = 2
+    """Pyramid levels above the image (each halves it): motions up to about window x 2^levels px."""
+    fb_px: float = 1.0
+    """A point that flow does not bring back within this many pixels of where it started is dropped."""
+    min_points: int = 8
+    """Fewer points than this: no texture term in that frame."""
+    sigma_px: float = 1.0
+    """Standard deviation of a followed point's pixel, which weighs the term against the contour lines
+    (robust: a point further off than 2 sigma counts less, Huber)."""
+
+    def __post_init__(self):
+        if self.points < 0 or self.min_points < 1 or self.window_px < 3 or self.levels < 0:
+            raise ValueError("flow: points >= 0, min_points >= 1, window_px >= 3 and levels >= 0")
+        if self.fb_px <= 0 or self.sigma_px <= 0 or not 0 < self.quality < 1:
+            raise ValueError("flow: fb_px and sigma_px must be > 0 and quality in 0..1")
+
+
+@dataclass
 class RefineConfig:
     """Region-based refinement of a detected pose (`n2d_dope.pose_refine`)."""
 

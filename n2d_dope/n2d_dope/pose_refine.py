@@ -165,9 +165,32 @@ def _jacobian(X: np.ndarray, n: np.ndarray, K: np.ndarray, centre: np.ndarray) -
     return np.c_[np.cross(X - centre, a), a]
 
 
+def _point_terms(points: tuple[np.ndarray, np.ndarray], T: np.ndarray, K: np.ndarray, sigma_px: float,
+                 scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton matrix and vector (6 x 6, 6) of 2D-3D correspondences (object-frame points, observed pixels)
+    at pose T: reprojection residuals weighed by 1 / sigma^2, robustly (Huber at 2 sigma, or a segment at a
+    coarse scale)."""
+    X = transform_points(T, points[0])
+    front = X[:, 2] > 1e-3
+    X, observed = X[front], points[1][front]
+    uvw = X @ K.T
+    residual = observed - uvw[:, :2] / uvw[:, 2:3]
+    ones, zeros = np.ones(len(X)), np.zeros(len(X))
+    Jac = np.r_[_jacobian(X, np.c_[ones, zeros], K, T[:3, 3]), _jacobian(X, np.c_[zeros, ones], K, T[:3, 3])]
+    r = np.r_[residual[:, 0], residual[:, 1]]
+    k = max(2.0 * sigma_px, float(scale))
+    w = np.tile(np.minimum(1.0, k / (np.linalg.norm(residual, axis=1) + 1e-12)), 2) / sigma_px ** 2
+    return (Jac * w[:, None]).T @ Jac, (Jac * w[:, None]).T @ r
+
+
 def refine_pose(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, region: RegionModel,
-                cfg: RefineConfig | None = None) -> Refined:
-    """Refine a pose (object -> camera, metres) of the object in an RGB uint8 image taken with intrinsics K."""
+                cfg: RefineConfig | None = None, points: tuple[np.ndarray, np.ndarray] | None = None,
+                point_sigma_px: float = 1.0) -> Refined:
+    """Refine a pose (object -> camera, metres) of the object in an RGB uint8 image taken with intrinsics K.
+
+    `points`: (object-frame points N x 3, where the image shows them N x 2 pixels), e.g. texture points followed
+    by optical flow (`n2d_dope.flow`): a reprojection term beside the contour lines, each point's pixel with
+    standard deviation `point_sigma_px`."""
     cfg = cfg or RefineConfig()
     K = np.asarray(K, float)
     img = _Image(rgb, cfg.bins)
@@ -193,6 +216,9 @@ def refine_pose(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, region: R
             w = 1.0 / var_px
             H = (Jac * w[:, None]).T @ Jac
             b = (Jac * w[:, None]).T @ mean_px
+            if points is not None and len(points[0]):
+                H_points, b_points = _point_terms(points, T, K, point_sigma_px, scale)
+                H, b = H + H_points, b + b_points
             H[np.diag_indices(6)] += cfg.damping * np.diag(H) + 1e-9
             step = cv2.solve(H, b.reshape(6, 1), flags=cv2.DECOMP_CHOLESKY)[1][:, 0]  # numpy's LAPACK call
             # costs 100x more here when BLAS threads contend

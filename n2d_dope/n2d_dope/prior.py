@@ -22,7 +22,7 @@ import argparse
 import json
 from pathlib import Path
 
-from n2d_common.contracts import atomic_write_json
+from n2d_common.contracts import atomic_write_json, read_manifest
 from n2d_common.errors import ConfigError
 from n2d_common.torch_utils import atomic_torch_save, load_checkpoint
 
@@ -77,7 +77,9 @@ def main(argv: list[str] | None = None) -> None:
     for i, name in enumerate(names):
         cfg = from_dict(DatasetConfig, merge(to_dict(DatasetConfig()),
                                              {**FAST_DATASET, "frames": args.frames, "seed": 100 + i}))
-        generate_dataset([suite_object_dir(name)], args.work / name, cfg)
+        manifest = read_manifest(args.work / name) if (args.work / name).is_dir() else None
+        if not (manifest and manifest.get("complete")):  # a dataset rendered before is kept
+            generate_dataset([suite_object_dir(name)], args.work / name, cfg)
     tcfg = from_dict(TrainConfig, merge(to_dict(TrainConfig()), {**FAST_TRAIN, "init_model": "", "any_object": True,
                                                                  "epochs": TIMED_EPOCHS, "max_minutes": args.minutes,
                                                                  "int8": False}))

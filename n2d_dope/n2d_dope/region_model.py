@@ -98,6 +98,17 @@ def look_from(direction: np.ndarray, centre: np.ndarray, distance: float) -> np.
     return T
 
 
+def decimated(vertices: np.ndarray, faces: np.ndarray, count: int = RENDER_FACES) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with at most `count` faces (decimated where it has more), as float64 vertices and int64 faces."""
+    V, F = np.asarray(vertices, float), np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(F) > count:
+        import fast_simplification
+
+        V, F = fast_simplification.simplify(V.astype(np.float32), F, target_count=count)
+        V, F = np.asarray(V, float), np.asarray(F, np.int64)
+    return V, F
+
+
 def build_region_model(vertices: np.ndarray, faces: np.ndarray, views: int = VIEWS, points: int = POINTS,
                        image_px: int = IMAGE_PX) -> RegionModel:
     """The sparse viewpoint model of a mesh (V x 3 object-frame vertices in metres, F x 3 faces)."""
@@ -109,11 +120,7 @@ def build_region_model(vertices: np.ndarray, faces: np.ndarray, views: int = VIE
     radius = float(np.linalg.norm(V - centre, axis=1).max())
     if not radius > 0:
         raise ContractError("the model is a single point", "check the model's mesh.obj")
-    if len(F) > RENDER_FACES:
-        import fast_simplification
-
-        V, F = fast_simplification.simplify(V.astype(np.float32), F, target_count=RENDER_FACES)
-        V, F = np.asarray(V, float), np.asarray(F, np.int64)
+    V, F = decimated(V, F)
     distance = _FOCAL * radius / (0.45 * image_px)
     c = (image_px - 1) / 2.0
     K = np.array([[_FOCAL, 0.0, c], [0.0, _FOCAL, c], [0.0, 0.0, 1.0]])

@@ -1,7 +1,8 @@
 """Pose tracking over a video stream: detect once, then follow the object frame to frame by refinement.
 
 For each frame the last pose, moved on by a constant-velocity motion model, starts a short region-based
-refinement (`n2d_dope.pose_refine`): the object is tracked at the refinement's cost (a few milliseconds) instead
+refinement (`n2d_dope.pose_refine`) that also takes the texture points of the last frame, followed into this one
+by optical flow (`n2d_dope.flow`): the object is tracked at the refinement's cost (a few milliseconds) instead
 of the network's. The detector runs again while no object is tracked, and every `redetect_frames` frames while
 one is; a detection that disagrees with the track replaces it only when it agrees better with the image
 (silhouette and texture), so a track that slipped is corrected and a stray detection does not break a good one.
@@ -22,7 +23,8 @@ import cv2
 import numpy as np
 
 from n2d_common.frames import make_T, transform_points
-from n2d_dope.config import RefineConfig
+from n2d_dope.config import FlowConfig, RefineConfig
+from n2d_dope.flow import FlowPoints
 from n2d_dope.infer import Detection, DopeModel
 from n2d_dope.pose_refine import pose_score, refine_pose, texture_agreement
 
@@ -51,6 +53,9 @@ class TrackConfig:
     0: none); below 1 it does not overshoot when the object stops."""
     refine: RefineConfig = field(default_factory=_track_refine)
     """The refinement run on every tracked frame (shorter than the one after a detection)."""
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    """Texture points followed from frame to frame (`n2d_dope.flow`), a term of each tracked frame's refinement
+    beside the silhouette (`flow.points` 0: silhouette only)."""
 
     def __post_init__(self):
         if self.redetect_frames < 0:
@@ -86,6 +91,8 @@ class Tracker:
         self.model = model
         self.cfg = cfg or TrackConfig()
         self.size_m = float(np.linalg.norm(np.ptp(model.cuboid_m[:8], axis=0)))
+        textured = model.refiner.textured
+        self.flow = FlowPoints(textured.vertices, textured.faces, self.cfg.flow) if self.cfg.flow.points else None
         self.reset()
 
     def reset(self) -> None:
@@ -97,6 +104,8 @@ class Tracker:
         self._size: tuple[int, int] | None = None
         self._since_detection = 0
         self._adopted = False  # the pose is a detection not yet followed into a frame
+        if self.flow is not None:
+            self.flow.reset()
 
     @property
     def tracking(self) -> bool:
@@ -117,6 +126,8 @@ class Tracker:
         if self.pose is not None and not 0.0 < stamp - self.pose.stamp <= self.cfg.max_gap_s:
             self._omega[:] = 0.0
             self._velocity[:] = 0.0
+            if self.flow is not None:
+                self.flow.reset()  # flow follows consecutive frames only
 
     def predict(self, stamp: float) -> np.ndarray | None:
         """The tracked pose moved on to `stamp` by the motion model (None while not tracking)."""
@@ -150,11 +161,16 @@ class Tracker:
         predicted = self.predict(stamp)
         if predicted is None:
             return None
-        refined = refine_pose(rgb, K, predicted, self.model.refiner.region, self.cfg.refine)
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if self.flow is not None else None
+        points = self.flow.follow(gray) if self.flow is not None else None
+        refined = refine_pose(rgb, K, predicted, self.model.refiner.region, self.cfg.refine, points,
+                              self.cfg.flow.sigma_px)
         self._since_detection += 1
         if refined.score < self.cfg.lost_score:
             self.reset()
             return None
+        if self.flow is not None:
+            self.flow.select(gray, K, refined.T_cam_obj)
         first = self._adopted  # the first frame after a detection started or replaced the track
         pose = self._update(refined.T_cam_obj, refined.score, "tracked", stamp)
         if first:
@@ -188,6 +204,8 @@ class Tracker:
         if apart <= self.cfg.agree_fraction * self.size_m:
             return self.pose
         if self._fit(rgb, K, best.T_cam_obj) > self._fit(rgb, K, current) + self.cfg.replace_margin:
+            if self.flow is not None:
+                self.flow.reset()  # the points belong to the replaced pose (and maybe to a later frame)
             return self._update(best.T_cam_obj, float(best.refine_score), "detected", max(stamp, self.pose.stamp))
         return self.pose
 
