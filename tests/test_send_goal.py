@@ -172,3 +172,42 @@ def _handle(client) -> ClientGoalHandle:
     answered)."""
     goal_id = UUID(uuid=list(uuid.uuid4().bytes))
     return ClientGoalHandle(client, goal_id, Rotate.Impl.SendGoalService.Response(accepted=True))
+
+
+@pytest.mark.timeout(60)
+def test_a_job_that_stops_as_soon_as_it_is_cancelled_ends_canceled(ros_domain):
+    """rclpy calls the cancel callback, which sets the job's cancel event, before it marks the goal CANCELING. A
+    job that stops in that gap must still end its goal canceled, with a result the client receives (it used to
+    end an EXECUTING goal as canceled, an invalid transition: the client waited for a result forever). The gap is
+    widened here by a cancel callback that takes 0.3 s after setting the event (fault injection: server, client
+    and transport are real)."""
+    with background_node("test_cancel_gap_client", ros_domain) as node:
+        server_node = rclpy.create_node("test_cancel_gap_server")
+
+        def run(_goal, _result, _progress, cancel: threading.Event) -> None:
+            cancel.wait(30)
+            raise Cancelled("stopped at once")
+
+        jobs = JobActionServer(server_node, Rotate, "/test/gap", run, accept=lambda _goal: True,
+                               feedback=lambda _p: Rotate.Feedback())
+
+        def slow_cancel(goal_handle):
+            answer = jobs._on_cancel(goal_handle)
+            time.sleep(0.3)  # the job thread runs to its end meanwhile
+            return answer
+
+        jobs._server.register_cancel_callback(slow_cancel)
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(server_node)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        try:
+            client = SafeActionClient(node, Rotate, "/test/gap")
+            assert client.wait_for_server(timeout_sec=30)
+            goal = send_goal(client, Rotate.Goal(angle_rad=0.5))
+            time.sleep(0.5)
+            assert len(wait_future(goal.cancel_goal_async()).goals_canceling) == 1
+            result = wait_future(goal.get_result_async(), 20)
+            assert result.status == GoalStatus.STATUS_CANCELED and "stopped at once" in result.result.message
+        finally:
+            executor.shutdown(timeout_sec=5.0)
+            server_node.destroy_node()

@@ -164,6 +164,19 @@ def declare_config(node: Node, cls: type[C]) -> C:
         raise ConfigError(f"parameter {exc.message}", exc.hint) from None
 
 
+CANCEL_TRANSITION_S = 5.0
+"""How long a job stopped by a cancel request waits for rclpy to mark its goal as cancelling."""
+
+
+def _await_cancel_transition(goal_handle) -> None:
+    """Wait until `goal_handle` is CANCELING. rclpy calls the cancel callback (which sets the job's cancel event)
+    before it moves the goal to CANCELING; a job that stops in between would end an EXECUTING goal as canceled, an
+    invalid transition that leaves the client without a result."""
+    deadline = time.monotonic() + CANCEL_TRANSITION_S
+    while not goal_handle.is_cancel_requested and time.monotonic() < deadline:
+        time.sleep(0.005)
+
+
 class JobActionServer:
     """An action server that runs one long job at a time, shared by the stage nodes.
 
@@ -186,6 +199,7 @@ class JobActionServer:
         self.result: Any = None
         """The last finished job's result."""
         self._busy = threading.Lock()
+        self._cancel_requested = False
         self._node, self._type, self._run, self._accept, self._feedback = node, action_type, run, accept, feedback
         self._server = ActionServer(node, action_type, name, execute_callback=self._execute,
                                     goal_callback=self._on_goal, cancel_callback=self._on_cancel,
@@ -195,6 +209,7 @@ class JobActionServer:
         return GoalResponse.ACCEPT if self._accept(goal) and not self._busy.locked() else GoalResponse.REJECT
 
     def _on_cancel(self, _goal_handle):
+        self._cancel_requested = True
         self.cancel.set()
         return CancelResponse.ACCEPT
 
@@ -204,11 +219,17 @@ class JobActionServer:
             return self._type.Result(message="another job is running")
         try:
             self.cancel.clear()
+            self._cancel_requested = False
             if goal_handle.is_cancel_requested:  # cancelled between its acceptance and now
                 self.cancel.set()
             result = self._job(goal_handle.request, goal_handle.publish_feedback)
-            end = {"succeeded": goal_handle.succeed, "cancelled": goal_handle.canceled}.get(self.state,
-                                                                                           goal_handle.abort)
+            state = self.state
+            if state == "cancelled":
+                if self._cancel_requested:
+                    _await_cancel_transition(goal_handle)
+                if not goal_handle.is_cancel_requested:  # stopped by shutdown, not by a cancel request
+                    state = "failed"
+            end = {"succeeded": goal_handle.succeed, "cancelled": goal_handle.canceled}.get(state, goal_handle.abort)
         finally:
             self._busy.release()
         end()
