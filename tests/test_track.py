@@ -122,8 +122,24 @@ def test_a_wrong_detection_does_not_replace_a_good_track(video, detector):
     assert np.allclose(pose.T_cam_obj, good)
 
 
+def test_a_track_the_silhouette_cannot_tell_wrong_ends_by_its_texture(video, detector):
+    """A track started upside down (half a turn about the box's x axis: the same silhouette, the print turned
+    away) holds on silhouette alone; the texture check ends it at its first due frame."""
+    seq, frames = video
+    turned = frames[0].T_cam_obj @ make_T(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+    alive = {}
+    for texture_frames in (0, 2):
+        tracker = Tracker(detector, TrackConfig(redetect_frames=0, texture_frames=texture_frames))
+        tracker.offer(frames[0].rgb, seq.K, [Detection("box", turned, 1.0, np.full((9, 2), np.nan), 0.0, 0.9)],
+                      frames[0].stamp)
+        alive[texture_frames] = [tracker.track(f.rgb, seq.K, f.stamp) is not None for f in frames[1:6]]
+    assert alive[0] == [True] * 5
+    assert alive[2] == [True, False, False, False, False]
+
+
 def test_bad_config():
-    for bad in (dict(redetect_frames=-1), dict(velocity_gain=2.0), dict(max_gap_s=0.0)):
+    for bad in (dict(redetect_frames=-1), dict(velocity_gain=2.0), dict(max_gap_s=0.0), dict(texture_frames=-1),
+                dict(min_texture=1.5)):
         with pytest.raises(ValueError):
             TrackConfig(**bad)
 

@@ -269,6 +269,10 @@ class RefineConfig:
     min_texture: float = 0.1
     """Refined poses whose texture agreement (`texture_agreement`: local normalised cross-correlation with the
     rendered albedo) is below this are rejected; not applied where the model is plain."""
+    keep_start: bool = True
+    """When a refined pose fails these checks, check the detector's own pose too and keep it when it passes:
+    refinement can slide off a right pose (a highlight, an occluder's edge, a background of the object's colours),
+    and a pose the texture confirms is worth more than none (docs/experiments.md)."""
 
     def __post_init__(self):
         if not self.scales or any(int(s) < 1 for s in self.scales):

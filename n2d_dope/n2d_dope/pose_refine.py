@@ -20,7 +20,8 @@ background, 0.5: chance), and the texture agreement (`texture_agreement`: local 
 the image with the model's albedo rendered at the pose), which a pose turned about an axis the object is not
 symmetric about fails even where its silhouette fits. Region statistics cannot tell an object from a background
 of its own colours: there a pose can slip, and the texture check is what catches it.
-`refine_detection` refines a detector's pose (and, optionally, its cuboid's half turns) and measures both.
+`refine_detection` refines a detector's pose (and, optionally, its cuboid's half turns) and measures both; when
+the refined pose fails them it measures the detector's own pose and keeps that one if it passes.
 """
 
 from __future__ import annotations
@@ -308,7 +309,8 @@ def refine_detection(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, regi
                      turns: list[np.ndarray] | None = None) -> Refined:
     """Refine a detector's pose; with a textured model also measure its texture agreement, and with
     `cfg.texture_turns` refine the half turns the detector may confuse it with too (`turns`, default
-    `cuboid_turns()`) and keep the one whose texture agrees best with the image."""
+    `cuboid_turns()`) and keep the one whose texture agrees best with the image. With `cfg.keep_start`, a refined
+    pose that is not `believable` gives way to the detector's own pose when that one is."""
     cfg = cfg or RefineConfig()
     T0 = np.asarray(T_cam_obj, float)
     starts = (turns or cuboid_turns()) if cfg.texture_turns and textured is not None else [np.eye(4)]
@@ -320,7 +322,13 @@ def refine_detection(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, regi
         if c.score >= top - cfg.turn_score_margin:
             c.texture = texture_agreement(rgb, K, c.T_cam_obj, textured)
     textured_ones = [c for c in candidates if np.isfinite(c.texture)]
-    return max(textured_ones, key=lambda c: c.texture) if len(textured_ones) > 1 else candidates[0]
+    best = max(textured_ones, key=lambda c: c.texture) if len(textured_ones) > 1 else candidates[0]
+    if cfg.keep_start and not believable(best, cfg):
+        score, lines = pose_score(rgb, K, T0, region, cfg)
+        start = Refined(T0.copy(), score, lines, texture_agreement(rgb, K, T0, textured))
+        if believable(start, cfg):
+            return start
+    return best
 
 
 def believable(refined: Refined, cfg: RefineConfig) -> bool:

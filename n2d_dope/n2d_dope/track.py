@@ -6,7 +6,9 @@ by optical flow (`n2d_dope.flow`): the object is tracked at the refinement's cos
 of the network's. The detector runs again while no object is tracked, and every `redetect_frames` frames while
 one is; a detection that disagrees with the track replaces it only when it agrees better with the image
 (silhouette and texture), so a track that slipped is corrected and a stray detection does not break a good one.
-A track is lost when its silhouette score drops below `lost_score` (the object left the view, or is hidden); a
+A track is lost when its silhouette score drops below `lost_score` (the object left the view, or is hidden), or
+when the image's texture stops matching the model's albedo there (checked every `texture_frames` tracked frames:
+a silhouette alone can hold on to a wrong pose against a busy background); a
 gap between frames longer than `max_gap_s`, a frame older than the last one or new intrinsics restart the motion
 model. Published poses are the refinement's own: no low-pass filter, so no lag.
 
@@ -41,6 +43,11 @@ class TrackConfig:
     """While tracking, run the detector again every this many frames (0: only when the track is lost)."""
     lost_score: float = 0.6
     """A tracked pose whose silhouette score falls below this ends the track."""
+    texture_frames: int = 3
+    """Every this many tracked frames, the texture agreement of the pose is checked (0: never)."""
+    min_texture: float = 0.1
+    """A checked pose whose texture agreement (`n2d_dope.pose_refine.texture_agreement`, where the albedo can be
+    compared) is below this ends the track: the same bar a detection's refined pose must pass."""
     agree_fraction: float = 0.1
     """A detection within this fraction of the object's size (mean distance of the cuboid corners) of the track
     agrees with it."""
@@ -58,8 +65,11 @@ class TrackConfig:
     beside the silhouette (`flow.points` 0: silhouette only)."""
 
     def __post_init__(self):
-        if self.redetect_frames < 0:
-            raise ValueError(f"redetect_frames must be >= 0, got {self.redetect_frames}")
+        if self.redetect_frames < 0 or self.texture_frames < 0:
+            raise ValueError(f"redetect_frames and texture_frames must be >= 0, got {self.redetect_frames} and "
+                             f"{self.texture_frames}")
+        if not -1.0 <= self.min_texture <= 1.0:
+            raise ValueError(f"min_texture must be in -1..1, got {self.min_texture}")
         if not 0.0 <= self.velocity_gain <= 1.0:
             raise ValueError(f"velocity_gain must be in 0..1, got {self.velocity_gain}")
         if self.max_gap_s <= 0 or self.agree_fraction <= 0:
@@ -103,6 +113,7 @@ class Tracker:
         self._K: np.ndarray | None = None
         self._size: tuple[int, int] | None = None
         self._since_detection = 0
+        self._since_texture = 0
         self._adopted = False  # the pose is a detection not yet followed into a frame
         if self.flow is not None:
             self.flow.reset()
@@ -166,7 +177,7 @@ class Tracker:
         refined = refine_pose(rgb, K, predicted, self.model.refiner.region, self.cfg.refine, points,
                               self.cfg.flow.sigma_px)
         self._since_detection += 1
-        if refined.score < self.cfg.lost_score:
+        if refined.score < self.cfg.lost_score or not self._texture_holds(rgb, K, refined.T_cam_obj):
             self.reset()
             return None
         if self.flow is not None:
@@ -176,6 +187,17 @@ class Tracker:
         if first:
             pose.source = "detected"
         return pose
+
+    def _texture_holds(self, rgb: np.ndarray, K: np.ndarray, T: np.ndarray) -> bool:
+        """False when a due texture check finds the image's texture does not match the model's at pose T."""
+        if self.cfg.texture_frames == 0:
+            return True
+        self._since_texture += 1
+        if self._since_texture < self.cfg.texture_frames:
+            return True
+        self._since_texture = 0
+        texture = texture_agreement(rgb, K, T, self.model.refiner.textured)
+        return not (np.isfinite(texture) and texture < self.cfg.min_texture)
 
     def _fit(self, rgb: np.ndarray, K: np.ndarray, T: np.ndarray) -> float:
         """Silhouette score plus texture agreement (where the texture can be compared) of a pose in a frame."""
