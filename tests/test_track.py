@@ -138,8 +138,7 @@ def test_a_track_the_silhouette_cannot_tell_wrong_ends_by_its_texture(video, det
 
 
 def test_bad_config():
-    for bad in (dict(redetect_frames=-1), dict(velocity_gain=2.0), dict(max_gap_s=0.0), dict(texture_frames=-1),
-                dict(min_texture=1.5)):
+    for bad in (dict(redetect_frames=-1), dict(velocity_gain=2.0), dict(max_gap_s=0.0), dict(texture_frames=-1)):
         with pytest.raises(ValueError):
             TrackConfig(**bad)
 

@@ -44,10 +44,8 @@ class TrackConfig:
     lost_score: float = 0.6
     """A tracked pose whose silhouette score falls below this ends the track."""
     texture_frames: int = 3
-    """Every this many tracked frames, the texture agreement of the pose is checked (0: never)."""
-    min_texture: float = 0.1
-    """A checked pose whose texture agreement (`n2d_dope.pose_refine.texture_agreement`, where the albedo can be
-    compared) is below this ends the track: the same bar a detection's refined pose must pass."""
+    """Every this many tracked frames, the texture agreement of the pose is checked (0: never); below
+    `refine.min_texture` (where the albedo can be compared) the track ends."""
     agree_fraction: float = 0.1
     """A detection within this fraction of the object's size (mean distance of the cuboid corners) of the track
     agrees with it."""
@@ -68,8 +66,6 @@ class TrackConfig:
         if self.redetect_frames < 0 or self.texture_frames < 0:
             raise ValueError(f"redetect_frames and texture_frames must be >= 0, got {self.redetect_frames} and "
                              f"{self.texture_frames}")
-        if not -1.0 <= self.min_texture <= 1.0:
-            raise ValueError(f"min_texture must be in -1..1, got {self.min_texture}")
         if not 0.0 <= self.velocity_gain <= 1.0:
             raise ValueError(f"velocity_gain must be in 0..1, got {self.velocity_gain}")
         if self.max_gap_s <= 0 or self.agree_fraction <= 0:
@@ -197,7 +193,7 @@ class Tracker:
             return True
         self._since_texture = 0
         texture = texture_agreement(rgb, K, T, self.model.refiner.textured)
-        return not (np.isfinite(texture) and texture < self.cfg.min_texture)
+        return not (np.isfinite(texture) and texture < self.cfg.refine.min_texture)
 
     def _fit(self, rgb: np.ndarray, K: np.ndarray, T: np.ndarray) -> float:
         """Silhouette score plus texture agreement (where the texture can be compared) of a pose in a frame."""
