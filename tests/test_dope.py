@@ -287,3 +287,26 @@ def test_degenerate_keypoints_give_no_pose():
     points = np.full((9, 2), 100.0) + np.random.default_rng(0).normal(0, 1e-7, (9, 2))
     assert solve_pose(points, cuboid, K) is None and solve_pose(points, cuboid, K, inlier_px=10.0) is None
 
+
+
+def test_pyramid_detections_of_one_instance_merge_into_one():
+    """The passes of the image pyramid find an object once each: `merge_detections` keeps one group per instance,
+    its best-ranked detection (confident keypoints one pose explains) first; a neighbour stays its own."""
+    from n2d_dope.infer import Detection, merge_detections
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    cuboid = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)] + [[0, 0, 0]]) * 0.05
+    near, shifted, neighbour = (make_T(rot_z(a)[:3, :3], t) for a, t in
+                                ((0.0, [0, 0, 0.5]), (0.1, [0.01, 0, 0.52]), (0.0, [0.16, 0, 0.5])))
+
+    def det(T, score, reprojection):
+        return Detection("box", T, score, project(K, T, cuboid), reprojection)
+
+    coarse, fine, other = det(shifted, 0.6, 4.0), det(near, 0.5, 0.5), det(neighbour, 0.4, 1.0)
+    groups = merge_detections([coarse, other, fine], K, cuboid)
+    assert [len(g) for g in groups] == [2, 1]
+    assert groups[0][0] is fine and groups[0][1] is coarse and groups[1][0] is other
+    with pytest.raises(ValueError, match="scales"):
+        DetectConfig(scales=(1.0, 0.0))
+    with pytest.raises(ValueError, match="scales"):
+        DetectConfig(scales=())

@@ -186,6 +186,11 @@ class DetectConfig:
     net_scale: float = 0.0
     """Resize factor from the camera image to the network input; 0 = automatic: match the focal length the
     model was trained at, so objects appear at the sizes they had in training."""
+    scales: tuple[float, ...] = (1.0, 0.6, 0.4)
+    """The network runs once per factor of this image pyramid, each a multiple of `net_scale`: an object nearer
+    the camera than the training windows showed whole is found at the smaller ones. Detections of one instance
+    at several scales are merged (`n2d_dope.infer.merge_detections`). Chosen on a validation set
+    (docs/experiments.md); (1.0,) runs the network once."""
 
     def __post_init__(self):
         if self.min_keypoints < 4:
@@ -196,6 +201,9 @@ class DetectConfig:
             raise ValueError(f"ransac_px must be >= 0, got {self.ransac_px}")
         if self.net_scale < 0:
             raise ValueError(f"net_scale must be >= 0, got {self.net_scale}")
+        self.scales = tuple(float(s) for s in self.scales)
+        if not self.scales or any(not 0 < s <= 4 for s in self.scales):
+            raise ValueError(f"scales must be one or more factors in (0, 4], got {self.scales}")
 
 
 @dataclass

@@ -195,6 +195,25 @@ def _checked_session(path: Path, threads: int):
     return sess
 
 
+def merge_detections(detections: list[Detection], K: np.ndarray, cuboid_m: np.ndarray) -> list[list[Detection]]:
+    """Detections grouped by instance, best first within a group and groups by their best: the passes of an image
+    pyramid find one object several times. Ranked by score / (1 + reprojection_px) (confident keypoints that one
+    pose explains); a detection whose projected centre lies within half the smaller projected cuboid of a group's
+    first joins that group."""
+    ranked = sorted(detections, key=lambda d: -d.score / (1.0 + d.reprojection_px))
+    groups: list[tuple[np.ndarray, float, list[Detection]]] = []
+    for d in ranked:
+        c = project(K, d.T_cam_obj, cuboid_m)
+        centre, size = c[8], float(np.ptp(c[:8], axis=0).max())
+        for first_centre, first_size, group in groups:
+            if np.linalg.norm(centre - first_centre) < 0.5 * min(size, first_size):
+                group.append(d)
+                break
+        else:
+            groups.append((centre, size, [d]))
+    return [group for _, _, group in groups]
+
+
 class DopeModel:
     """A DOPE model directory ready to detect its object: the ONNX session and the cuboid."""
 
@@ -253,10 +272,36 @@ class DopeModel:
         return belief[0], affinity[0]
 
     def detect(self, rgb: np.ndarray, K: np.ndarray) -> list[Detection]:
-        """Instances of the object in an RGB uint8 image taken with intrinsics K (3 x 3, undistorted)."""
-        scale = self.scale_for(K)
-        beliefs, affinities = self.maps(rgb, scale)
+        """Instances of the object in an RGB uint8 image taken with intrinsics K (3 x 3, undistorted): the network
+        at each scale of `cfg.scales`, one detection per instance (`merge_detections`), refined when refinement
+        is on (the best-ranked detection of an instance whose refined pose is believable)."""
+        base = self.scale_for(K)
+        candidates, preprocess, network, postprocess = [], 0.0, 0.0, 0.0
+        for factor in self.cfg.scales:
+            scale = base * factor
+            beliefs, affinities = self.maps(rgb, scale)
+            preprocess, network = preprocess + self.timing.preprocess, network + self.timing.network
+            t0 = time.perf_counter()
+            candidates += self._poses(beliefs, affinities, scale, K)
+            postprocess += time.perf_counter() - t0
         t0 = time.perf_counter()
+        instances = merge_detections(candidates, K, self.cuboid_m)[: self.cfg.max_instances]
+        t1 = time.perf_counter()
+        self.timing.preprocess, self.timing.network, self.timing.postprocess = preprocess, network, \
+            postprocess + t1 - t0
+        if self.refiner is None:
+            detections = [group[0] for group in instances]
+        else:
+            detections = []
+            for group in instances:
+                refined = next((r for r in (self.refine(rgb, K, c) for c in group) if r is not None), None)
+                if refined is not None:
+                    detections.append(refined)
+        self.timing.refine = time.perf_counter() - t1
+        return detections
+
+    def _poses(self, beliefs: np.ndarray, affinities: np.ndarray, scale: float, K: np.ndarray) -> list[Detection]:
+        """The instances of one pass's maps (network input = camera image resized by `scale`) with their poses."""
         detections = []
         for group in group_instances(beliefs, affinities, self.cfg):
             found = np.isfinite(group[:, 2])
@@ -273,11 +318,6 @@ class DopeModel:
                     < self.cfg.min_inliers:
                 continue
             detections.append(Detection(self.name, T, float(np.nansum(group[:, 2]) / 9), points, error))
-        t1 = time.perf_counter()
-        self.timing.postprocess = t1 - t0
-        if self.refiner is not None:
-            detections = [r for r in (self.refine(rgb, K, d) for d in detections) if r is not None]
-        self.timing.refine = time.perf_counter() - t1
         return detections
 
     def refine(self, rgb: np.ndarray, K: np.ndarray, detection: Detection) -> Detection | None:
