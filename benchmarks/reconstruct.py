@@ -198,6 +198,14 @@ def _suite(args, tmp: Path) -> None:
             rows.append((label, "  F-score at 1 mm, held-out textured mesh PSNR",
                          f"{g['fscore']:.3f}, " + (f"{h['mesh_psnr_db']:.2f} dB" if "mesh_psnr_db" in h else "-"),
                          "", ""))
+            if g.get("albedo_psnr_db") is not None:
+                rows.append((label, "  albedo PSNR against the true albedo (gain-matched)",
+                             f"{g['albedo_psnr_db']:.2f} dB", "", ""))
+            if report.get("stage2"):
+                s2 = report["stage2"]
+                rows.append((label, "  stage 2: held-out model PSNR, outline error, time",
+                             f"{h.get('stage2_psnr_db', float('nan')):.2f} dB, {s2['before']['outline_px']:.2f} "
+                             f"to {s2['after']['outline_px']:.2f} px, {s2['seconds']:.0f} s", "", ""))
             rows.append((label, "bbox size error x, y, z", ", ".join(f"{x:+.2f} %" for x in g["bbox_size_error_pct"]),
                          f"within {bbox_pct} %", _met(bbox <= bbox_pct)))
             rows.append((label, "time: capture, reconstruct", f"{capture_s:.0f} s, {wall_s:.0f} s",

@@ -21,6 +21,7 @@ from n2d_reconstruct.neus import NeusConfig
 from n2d_reconstruct.pipeline import ReconstructConfig, reconstruct
 from n2d_reconstruct.planes import PlanesConfig
 from n2d_reconstruct.refine import RefineConfig
+from n2d_reconstruct.stage2 import Stage2Config
 from n2d_reconstruct.texture import TextureConfig, unwrap
 from n2d_sim.session import render_session, small_world
 
@@ -233,6 +234,21 @@ def test_cli_reconstruct(session, tmp_path, capsys):
     assert "hint:" in capsys.readouterr().err
 
 
+def test_stage2_fits_the_mesh_and_its_appearance_to_the_photos(session, model, tmp_path):
+    cfg = _config()
+    cfg.stage2 = Stage2Config(enabled=True, iterations=100, warmup=20, pixels=4000)
+    report = reconstruct(session[0], tmp_path / "model", cfg, ground_truth=session[1].model_dir)
+    s2 = report["stage2"]
+    assert s2["after"]["photometric"] < s2["before"]["photometric"], s2
+    assert s2["after"]["outline_px"] < s2["before"]["outline_px"], s2
+    assert list(report["timings_s"])[:6] == ["load", "geometry", "mesh", "refine", "stage2", "hull"]
+    # the fitted model (light and highlights included) renders the held-out views as well as the baked texture
+    held, plain = report["heldout"], model[1]["heldout"]
+    assert held["stage2_psnr_db"] > plain["mesh_psnr_db"] - 1.0, (held, plain)
+    assert report["geometry"]["chamfer_pct_diameter"] < model[1]["geometry"]["chamfer_pct_diameter"] + 0.1
+    assert report["model"]["watertight"]
+
+
 def _neus_config() -> ReconstructConfig:
     cfg = _config(method="neus")
     tiny = NeusConfig.preset("tiny")
@@ -264,8 +280,8 @@ def test_neus_method_trains_from_the_hull_and_resumes_after_a_cancel(session, tm
     assert report["geometry"]["chamfer_pct_diameter"] < 2.5, report["geometry"]
     assert report["heldout"]["field_psnr_db"] > 12 and report["heldout"]["mesh_psnr_db"] > 10
     assert read_manifest(out)["extra"]["method"] == "neus" and (out / "neus.pt").is_file()
-    assert list(report["timings_s"])[:6] == ["load", "geometry", "mesh", "fair", "hull", "denoise"]
-    assert 0 < report["fair"]["plain_fraction"] < 1 and report["refine"] is None
+    assert list(report["timings_s"])[:7] == ["load", "geometry", "mesh", "fair", "stage2", "hull", "denoise"]
+    assert 0 < report["fair"]["plain_fraction"] < 1 and report["refine"] is None and report["stage2"] is None
 
 
 def test_pinched_edges_and_holes_are_repaired():

@@ -2,9 +2,10 @@
 
 Phases: load (checks) -> geometry (the visual hull field; `neus` trains a NeuS field initialised
 from it) -> mesh (narrow-band marching cubes, clean-up) -> refine (`fast`: photo-consistency) ->
-fair (`neus`: plain surfaces spanned by a membrane) -> hull (what stands outside the visual hull is
-pulled back) -> denoise (bilateral normal filtering: ripples flattened, edges kept) -> planes (broad
-planar regions made flat, their edges and corners sharp) -> texture (xatlas;
+fair (`neus`: plain surfaces spanned by a membrane) -> stage2 (optional: vertices and a diffuse +
+specular appearance fitted by differentiable rendering; the albedo is then baked without highlights) ->
+hull (what stands outside the visual hull is pulled back) -> denoise (bilateral normal filtering: ripples
+flattened, edges kept) -> planes (broad planar regions made flat, their edges and corners sharp) -> texture (xatlas;
 baked from the photos, or from the NeuS colour field) -> export (object frame, OBJ/GLB,
 models_info.json) -> report (held-out metrics, geometry against a ground truth, preview).
 The output is built in `<out>.partial` and appears complete or not at all; a NeuS run that stops
@@ -37,13 +38,15 @@ from n2d_reconstruct.neus import NeusConfig, NeusField, train_neus
 from n2d_reconstruct.placements import PlacementsConfig, fuse, register
 from n2d_reconstruct.planes import PlanesConfig, flatten_planes
 from n2d_reconstruct.refine import RefineConfig, refine_surface
-from n2d_reconstruct.report import geometry_metrics, ground_truth_mesh, image_metrics, write_preview
+from n2d_reconstruct.report import albedo_metrics, geometry_metrics, ground_truth_mesh, image_metrics, write_preview
+from n2d_reconstruct.stage2 import Stage2Config, Stage2Result, refine_stage2
 from n2d_reconstruct.texture import TextureConfig, TexturedMesh, bake_from_function, bake_from_views, unwrap
 
-PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.3, "hull": 0.01, "denoise": 0.07,
-                   "planes": 0.02, "texture": 0.24, "symmetry": 0.01, "export": 0.05, "report": 0.15},
-          "neus": {"load": 0.01, "geometry": 0.83, "mesh": 0.03, "fair": 0.01, "hull": 0.005, "denoise": 0.005,
-                   "planes": 0.005, "texture": 0.04, "symmetry": 0.005, "export": 0.01, "report": 0.05}}
+PHASES = {"fast": {"load": 0.02, "geometry": 0.03, "mesh": 0.1, "refine": 0.25, "stage2": 0.05, "hull": 0.01,
+                   "denoise": 0.07, "planes": 0.02, "texture": 0.24, "symmetry": 0.01, "export": 0.05, "report": 0.15},
+          "neus": {"load": 0.01, "geometry": 0.82, "mesh": 0.03, "fair": 0.01, "stage2": 0.01, "hull": 0.005,
+                   "denoise": 0.005, "planes": 0.005, "texture": 0.04, "symmetry": 0.005, "export": 0.01,
+                   "report": 0.05}}
 """Share of the progress bar of each phase, per method."""
 AABB_MARGIN_M = 0.01
 """NeuS samples inside the visual hull's bounding box grown by this, metres (the hull contains the object)."""
@@ -79,6 +82,8 @@ class ReconstructConfig:
     """Photo-consistency refinement of the hull."""
     fair: FairConfig = field(default_factory=FairConfig)
     """The membrane over surfaces that show no texture (NeuS)."""
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+    """Vertex offsets and a diffuse + specular appearance fitted by differentiable rendering (both methods)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Feature-preserving denoising of the mesh (both methods)."""
     planes: PlanesConfig = field(default_factory=PlanesConfig)
@@ -183,6 +188,12 @@ def _refine(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
     return mesh, passes[-1] | {"passes": passes}
 
 
+def _stage2(mesh, views, cfg: ReconstructConfig, progress: ProgressFn):
+    if not cfg.stage2.enabled:
+        return mesh, None, None
+    return refine_stage2(mesh, views, cfg.stage2, progress, fixed=_on_plate(mesh, cfg))
+
+
 def _forgiving(hull: VisualHull, cfg: HullConfig):
     """The hull's field forgiving the one view whose mask alone notches it (`HullConfig.pull_forgive_px`)."""
     notch = cfg.pull_forgive_px * hull.pixel_m
@@ -200,7 +211,8 @@ def _on_plate(mesh, cfg: ReconstructConfig) -> np.ndarray:
     return (mesh.vertices[:, 2] <= cfg.hull.plate_clearance_m + cfg.mesh.voxel_m) & (mesh.vertex_normals[:, 2] < -0.5)
 
 
-def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: ProgressFn):
+def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, staged: Stage2Result | None,
+             progress: ProgressFn):
     progress(Progress(0.0, "texture", message="unwrapping (xatlas)"))
     tm = unwrap(mesh, cfg)
     if neus is not None:  # the colour field seen from the most frontal training cameras, weighted like photos
@@ -208,6 +220,8 @@ def _texture(mesh, views, cfg: TextureConfig, neus: NeusField | None, progress: 
         tm.albedo = bake_from_function(tm, lambda p, n: neus.albedo(p, n, eyes, sharpness=cfg.sharpness,
                                                                      min_cos=cfg.min_cos), cfg.size_px)
         return tm
+    if staged is not None:  # the photos less the highlights stage 2 fitted: an albedo without them
+        views = staged.diffuse_views(views)
     tm.albedo = bake_from_views(tm, views, cfg, progress=lambda p: progress(Progress(0.5 + 0.5 * p.fraction, "texture",
                                                                                      message=p.message)))
     return tm
@@ -232,20 +246,22 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
             mesh, refined = phases.run("refine", _refine, mesh, data.train, cfg)
         else:
             mesh, faired = phases.run("fair", fair_plain, mesh, data.train, cfg.fair, _on_plate(mesh, cfg))
+        mesh, staged, staged_stats = phases.run("stage2", _stage2, mesh, data.train, cfg)
         mesh, pulled = phases.run("hull", _pull_inside, mesh, hull, cfg.hull)
         mesh = phases.run("denoise", denoise, mesh, cfg.denoise, _on_plate(mesh, cfg))
         mesh, flattened = phases.run("planes", flatten_planes, mesh, data.train.pixel_m, cfg.planes,
                                      _on_plate(mesh, cfg))
-        tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus)
+        tm = phases.run("texture", _texture, mesh, data.train, cfg.texture, neus, staged)
         T_turntable_obj = object_frame(tm.vertices)
         model = tm.transformed(inv_T(T_turntable_obj))  # the object frame; tm stays in the turntable frame
         symmetries = phases.run("symmetry", _symmetries, model, cfg)
         info = phases.run("export", lambda progress: write_model(writer.path, model, cfg.object_name,
                                                                  to_models_info(symmetries)))
-        report = phases.run("report", _report, writer.path, data, tm, mesh, neus, ground_truth, cfg)
+        report = phases.run("report", _report, writer.path, data, tm, mesh, neus, staged, ground_truth, cfg)
         report["placements"] = data.registration
         report["refine"] = refined
         report["fair"] = faired
+        report["stage2"] = staged_stats
         report["hull"] = pulled
         report["planes"] = flattened
         report["symmetry"] = {"mode": cfg.symmetry,
@@ -266,16 +282,21 @@ def reconstruct(session_dir: str | Path, out: str | Path, cfg: ReconstructConfig
         return report
 
 
-def _report(directory: Path, data, tm, mesh, neus, ground_truth, cfg: ReconstructConfig,
+def _report(directory: Path, data, tm, mesh, neus, staged, ground_truth, cfg: ReconstructConfig,
             progress: ProgressFn) -> dict:
     report: dict = {"method": cfg.method, "views": {"train": len(data.train), "heldout": len(data.heldout)}}
     # Without held-out views the preview shows training views, and no image metrics are reported.
     shown = data.heldout if len(data.heldout) else data.train.subset(list(range(min(3, len(data.train)))))
-    metrics, rows = image_metrics(shown, tm, neus.render if neus is not None else None)
+    renders = ({"field": neus.render} if neus is not None else {}) | \
+        ({"stage2": staged.render} if staged is not None else {})
+    metrics, rows = image_metrics(shown, tm, renders)
     report["heldout"] = metrics if len(data.heldout) else None
     label = "photo (held out)" if len(data.heldout) else "photo (training)"
-    labels = [label, "textured mesh"] + (["radiance field"] if neus is not None else []) + ["geometry"]
+    labels = [label, "textured mesh"] + (["radiance field"] if neus is not None else []) + \
+        (["stage 2 model"] if staged is not None else []) + ["geometry"]
     write_preview(directory / "preview.png", rows, labels)
     if ground_truth is not None:
         report["geometry"] = geometry_metrics(mesh, ground_truth_mesh(Path(ground_truth)), cfg.fscore_threshold_m)
+        if len(data.heldout):
+            report["geometry"] |= albedo_metrics(data.heldout, tm, Path(ground_truth))
     return report

@@ -2,10 +2,11 @@
 
 Image metrics compare each held-out photo with a render from the same camera, over the pixels of
 the photo's object mask, both black outside it (the background is not modelled): the textured mesh
-(`mesh_*`) and, when the method has one, the radiance field (`field_*`). PSNR in dB, SSIM (Gaussian,
-sigma 1.5), FLIP (lower is better); simulated sessions are also scored against their noise-free
-images (`clean_*`). Geometry: Chamfer distance (mean of both directions) and F-score at
-`fscore_threshold_m`, with the ground-truth mesh placed in the turntable frame.
+(`mesh_*`) and, when the method has them, the radiance field (`field_*`) and the stage 2 model (`stage2_*`).
+PSNR in dB, SSIM (Gaussian, sigma 1.5), FLIP (lower is better); simulated sessions are also scored against their
+noise-free images (`clean_*`). Against a ground truth: Chamfer distance (mean of both directions) and F-score at
+`fscore_threshold_m`, with the ground-truth mesh placed in the turntable frame, and the albedo against the true
+one (`albedo_psnr_db`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from n2d_common.formats.model import diameter
+from n2d_common.formats.model import diameter, read_textured_model
 from n2d_common.frames import inv_T, make_T, transform_points
 from n2d_common.images import contact_sheet, write_png
 from n2d_common.raster import rasterize, render_textured
@@ -37,11 +38,12 @@ def ground_truth_mesh(model_dir: Path) -> trimesh.Trimesh:
     return mesh.apply_transform(make_T(np.eye(3), [0.0, 0.0, -mesh.vertices[:, 2].min()]))
 
 
-def image_metrics(views: Views, tm: TexturedMesh, field: FieldRender | None = None) -> tuple[dict, list]:
-    """Mean held-out metrics of the textured mesh (and field) in the turntable frame, and one row of preview
-    images (photo, mesh, field, shaded geometry) per view.
+def image_metrics(views: Views, tm: TexturedMesh, renders: dict[str, FieldRender] | None = None
+                  ) -> tuple[dict, list]:
+    """Mean held-out metrics of the textured mesh (and of other renderers: the NeuS field, the stage 2 model) in
+    the turntable frame, and one row of preview images (photo, mesh, the renderers', shaded geometry) per view.
 
-    Keys `{mesh,field}_{psnr_db,ssim,flip}` score the renders against the photos. When the views have
+    Keys `{mesh,<renderer>}_{psnr_db,ssim,flip}` score the renders against the photos. When the views have
     noise-free images (a simulated session), `clean_{mesh,field}_*` score them against those, and
     `clean_photo_*` scores the photo itself: what a perfect model would get against the photos.
     """
@@ -53,9 +55,9 @@ def image_metrics(views: Views, tm: TexturedMesh, field: FieldRender | None = No
         rendered, _ = render_textured(tm.vertices, tm.faces, tm.face_uvs, tm.albedo, views.K, T_cam,
                                       views.width, views.height)
         images = {"mesh": rendered}
-        if field is not None:
-            images["field"] = np.clip(np.rint(255 * field(views.K, views.T_turntable_cam[i], views.width,
-                                                           views.height, mask)), 0, 255).astype(np.uint8)
+        for name, render in (renders or {}).items():
+            images[name] = np.clip(np.rint(255 * render(views.K, views.T_turntable_cam[i], views.width,
+                                                        views.height, mask)), 0, 255).astype(np.uint8)
         pairs = [(name, photo, image) for name, image in images.items()]
         if views.truth is not None:
             clean = views.truth[i]
@@ -79,6 +81,28 @@ def _scores(reference: np.ndarray, image: np.ndarray, mask: np.ndarray) -> dict[
 
 UNDERSIDE_FRACTION = 0.1
 """The underside, measured on its own: the surface within this fraction of the true height of the plate."""
+
+
+def albedo_metrics(views: Views, tm: TexturedMesh, truth_dir: Path) -> dict:
+    """The albedo against the simulator's true one: both textured meshes rendered unlit in the views (the truth
+    placed as `ground_truth_mesh` places it), PSNR over the pixels both cover after a least-squares gain per colour
+    channel (a baked albedo carries the capture's exposure and shading; a highlight baked into it stays an error)."""
+    vertices, faces, face_uvs, albedo = read_textured_model(Path(truth_dir))
+    vertices = vertices - [0.0, 0.0, vertices[:, 2].min()]
+    scores = []
+    for i in range(len(views)):
+        T_cam = inv_T(views.T_turntable_cam[i])
+        true, true_mask = render_textured(vertices, faces, face_uvs, albedo, views.K, T_cam, views.width, views.height)
+        ours, our_mask = render_textured(tm.vertices, tm.faces, tm.face_uvs, tm.albedo, views.K, T_cam, views.width,
+                                         views.height)
+        both = true_mask & our_mask
+        if not both.any():
+            continue
+        a, b = ours[both].astype(np.float64), true[both].astype(np.float64)
+        gain = (a * b).sum(0) / np.maximum((a * a).sum(0), 1e-9)
+        mse = float(np.mean((np.clip(a * gain, 0, 255) - b) ** 2)) / 255.0 ** 2
+        scores.append(10 * np.log10(1.0 / max(mse, 1e-12)))
+    return {"albedo_psnr_db": round(float(np.mean(scores)), 4) if scores else None}
 
 
 def geometry_metrics(mesh: trimesh.Trimesh, truth: trimesh.Trimesh, threshold_m: float) -> dict:
