@@ -191,13 +191,19 @@ class Stage2Result:
         return mask, fv, bary, n_cam, r_cam
 
     @torch.no_grad()
-    def render(self, K: np.ndarray, T_turntable_cam: np.ndarray, width: int, height: int,
-               mask: np.ndarray | None = None) -> np.ndarray:
-        """H x W x 3 float image (0..1) of the fitted model in a view; black where the mesh is not."""
+    def render_covered(self, K: np.ndarray, T_turntable_cam: np.ndarray, width: int, height: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """(H x W x 3 float image (0..1) of the fitted model in a view, black where the mesh is not; H x W bool
+        where the mesh is)."""
         covered, fv, bary, n_cam, r_cam = self._shade(K, T_turntable_cam, width, height)
         image = np.zeros((height, width, 3), np.float32)
         image[covered] = self.appearance.colour(fv, bary, n_cam, r_cam)[0].clamp(0, 1).numpy()
-        return image
+        return image, covered
+
+    def render(self, K: np.ndarray, T_turntable_cam: np.ndarray, width: int, height: int,
+               mask: np.ndarray | None = None) -> np.ndarray:
+        """H x W x 3 float image (0..1) of the fitted model in a view (the report's renderer signature)."""
+        return self.render_covered(K, T_turntable_cam, width, height)[0]
 
     @torch.no_grad()
     def specular_images(self, views: Views) -> np.ndarray:
@@ -279,8 +285,7 @@ def _errors(scene: _Scene, vertices: np.ndarray, faces: np.ndarray, appearance: 
     photo, outline = [], []
     views = scene.views
     for i in range(len(views)):
-        image = result.render(views.K, views.T_turntable_cam[i], views.width, views.height)
-        covered = image.any(2) | (scene.raster(i, vertices, faces).mask)
+        image, covered = result.render_covered(views.K, views.T_turntable_cam[i], views.width, views.height)
         both = covered & views.masks[i]
         photo.append(float(np.abs(255.0 * image[both] - views.rgb[i][both]).mean()) if both.any() else 0.0)
         sdf = scene.sdf[i].numpy()
