@@ -149,12 +149,15 @@ def test_the_stage_reconstructs_a_two_placement_session_in_the_first_placements_
     out, truth = two_placements
     cfg = ReconstructConfig(object_name="mug", holdout_every=8)
     cfg.mesh.voxel_m, cfg.mesh.target_faces, cfg.texture.size_px = 0.003, 3000, 128
-    cfg.refine.enabled = False
+    # at 160 x 120 a pixel is 3.5 mm at the mug: the facets of a hull from 10 views lie flat within the planes
+    # phase's 3-pixel band, and snapping the mug's round sides onto them grows its width by 10 mm (measured: 95 to
+    # 105 mm); the phase is tested on its own in test_planes.py
+    cfg.refine.enabled = cfg.planes.enabled = False
     report = reconstruct(out, tmp_path / "model", cfg, ground_truth=truth.model_dir)
     assert report["placements"]["registered"][0]["min_view_coverage"] >= 0.95
     assert report["model"]["watertight"] and report["views"]["train"] + report["views"]["heldout"] == 2 * VIEWS
     # the model frame is the first placement's: Z up as the mug first stood (on its side the height would be its
-    # 80 mm width); 10 training views per placement leave the hull loose around the handle (measured: 102, 96, 97
+    # 80 mm width); 10 training views per placement leave the hull loose around the handle (measured: 104, 95, 97
     # mm against 111, 80, 95)
     size = np.array(report["model"]["size_mm"])
     true = np.array([object_info(SimWorldConfig(object=str(truth.model_dir)))[f"size_{a}"] for a in "xyz"])
