@@ -114,6 +114,8 @@ def test_demo_runs_the_pipeline_resumes_after_ctrl_c_and_scores_poses(tmp_path, 
     demo = json.loads((out / "demo.json").read_text())
     assert set(demo["evaluation"]) == {"synthetic", "turntable"}
     assert demo["evaluation"]["turntable"]["fp32"]["instances"] == 4
+    # and the poses refined against the images, as dope_node publishes them
+    assert demo["evaluation"]["turntable"]["fp32 refined"]["instances"] == 4
     live = demo["live"]
     assert live["instances"] == 4 and live["processed_frames"] >= 4
     assert read_png(out / "live" / "overlays.png").ndim == 3

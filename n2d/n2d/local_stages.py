@@ -52,6 +52,6 @@ class LibraryStages:
         summary = train(dataset_dir, dope_dir, cfg, object_name=object_name, progress=progress, cancel=cancel)
         return {k: summary[k] for k in TRAIN_SUMMARY if k in summary}
 
-    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], *, progress: ProgressFn,
+    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], refined: bool, *, progress: ProgressFn,
                  cancel: threading.Event) -> dict:
-        return evaluate_run(dope_dir, tests, precisions, progress=progress, cancel=cancel)
+        return evaluate_run(dope_dir, tests, precisions, refined, progress=progress, cancel=cancel)

@@ -111,6 +111,9 @@ class PipelineConfig:
     value in `train` does); 0: the preset's epochs."""
     precisions: list[str] = field(default_factory=lambda: ["fp32", "int8"])
     """ONNX models to evaluate (int8 only where the training exported one)."""
+    evaluate_refined: bool = True
+    """Score each precision's poses refined against the images too (what dope_node publishes with its default
+    `refine`), under `<precision> refined`; the network's own poses are scored either way."""
     capture: dict = field(default_factory=dict)
     """Overrides of capture_node's config for both sweeps (a mapping, like a Capture goal's config_yaml)."""
     reconstruct: dict = field(default_factory=dict)
@@ -175,7 +178,7 @@ class StageRunner(Protocol):
     def train(self, dataset_dir: Path, dope_dir: Path, object_name: str, preset: str, overrides: dict, *,
               progress: ProgressFn, cancel: threading.Event) -> dict: ...
 
-    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], *, progress: ProgressFn,
+    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], refined: bool, *, progress: ProgressFn,
                  cancel: threading.Event) -> dict: ...
 
 
@@ -359,29 +362,34 @@ def _run_stage(stage: str, layout: RunLayout, object_name: str, cfg: PipelineCon
                             progress=progress, cancel=cancel)
     tests = {name: out(s) for name, s in (("synthetic", "test_dataset"), ("turntable", "test_capture"))
              if s in cfg.stages()}
-    return runner.evaluate(out("train"), tests, cfg.precisions, progress=progress, cancel=cancel)
+    return runner.evaluate(out("train"), tests, cfg.precisions, cfg.evaluate_refined, progress=progress, cancel=cancel)
 
 
-def evaluate_run(dope_dir: str | Path, tests: dict, precisions: list[str], *, progress: ProgressFn = no_progress,
-                 cancel: threading.Event | None = None) -> dict:
+def evaluate_run(dope_dir: str | Path, tests: dict, precisions: list[str], refined: bool = False, *,
+                 progress: ProgressFn = no_progress, cancel: threading.Event | None = None) -> dict:
     """The evaluate stage: the DOPE model on each test set (`synthetic`: a dataset, `turntable`: a board-posed
-    capture session) in each precision it has; returns {test: {precision: headline numbers}}."""
+    capture session) in each precision it has, and with `refined` its poses refined against the images too
+    (dope_node's default refinement, under `<precision> refined`); returns {test: {precision: headline numbers}}."""
     from n2d_dope.evaluate import evaluate, evaluate_session
+    from n2d_dope.pose_refine import RefineConfig
 
     dope_dir = Path(dope_dir)
-    jobs = [(name, path, precision) for name, path in tests.items() for precision in precisions
+    jobs = [(name, path, precision, refine) for name, path in tests.items() for precision in precisions
+            for refine in ([None, RefineConfig()] if refined else [None])
             if precision == "fp32" or (dope_dir / "model_int8.onnx").is_file()]
     results: dict = {}
-    for i, (name, path, precision) in enumerate(jobs):
+    for i, (name, path, precision, refine) in enumerate(jobs):
         if cancel is not None and cancel.is_set():
             raise Cancelled("evaluation cancelled", "run it again to continue")
+        key = precision if refine is None else f"{precision} refined"
 
-        def sub(p: Progress, i=i, what=f"{name} {precision}") -> None:
+        def sub(p: Progress, i=i, what=f"{name} {key}") -> None:
             progress(Progress((i + p.fraction) / len(jobs), what, -1.0, p.message))
 
         run = evaluate_session if name == "turntable" else evaluate
-        r = run(dope_dir, path, name=name, precision=precision, progress=sub)
-        results.setdefault(name, {})[precision] = {
+        r = run(dope_dir, path, name=name if refine is None else f"{name}_refined", precision=precision,
+                refine=refine, progress=sub)
+        results.setdefault(name, {})[key] = {
             k: r[k] for k in ("images", "instances", "detected", "adds_accuracy_10pct", "add_accuracy_10pct",
                               "adds_auc_10cm", "add_auc_10cm", "adds_median_mm", "add_median_mm", "diameter_mm")
             if k in r}

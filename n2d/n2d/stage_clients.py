@@ -81,7 +81,8 @@ class ActionStages:
         summary = json.loads(self._call(self.train_client, goal, "train_node", progress, cancel).summary_json)
         return {k: summary[k] for k in TRAIN_SUMMARY if k in summary}
 
-    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], *, progress: ProgressFn,
+    def evaluate(self, dope_dir: Path, tests: dict, precisions: list[str], refined: bool, *, progress: ProgressFn,
                  cancel: threading.Event) -> dict:
         return run_in_worker(evaluate_run, {"dope_dir": str(dope_dir), "tests": {k: str(v) for k, v in tests.items()},
-                                            "precisions": precisions}, progress=progress, cancel=cancel)
+                                            "precisions": precisions, "refined": refined},
+                             progress=progress, cancel=cancel)

@@ -281,10 +281,19 @@ class RefineConfig:
     """When a refined pose fails these checks, check the detector's own pose too and keep it when it passes:
     refinement can slide off a right pose (a highlight, an occluder's edge, a background of the object's colours),
     and a pose the texture confirms is worth more than none (docs/experiments.md)."""
+    texture_rounds: int = 1
+    """Rounds of render-and-compare after the silhouette refinement (`n2d_dope.pose_refine.align_texture`): the
+    model's albedo rendered at the pose, its corners followed into the image by optical flow, the pose fitted to
+    them (PnP) and refined again with them as a reprojection term beside the contour; a round is kept when the
+    texture agrees better.
+    It holds what the outline alone cannot (a box seen face on). One round, chosen on a validation sweep (a second
+    gained nothing there, docs/experiments.md); 0: off."""
 
     def __post_init__(self):
         if not self.scales or any(int(s) < 1 for s in self.scales):
             raise ValueError(f"scales must be positive integers, got {self.scales}")
+        if self.texture_rounds < 0:
+            raise ValueError(f"texture_rounds must be >= 0, got {self.texture_rounds}")
         if self.iterations < 0 or self.search_segments < 1 or self.window_segments < 1:
             raise ValueError("iterations must be >= 0, search_segments and window_segments >= 1")
         if not 2 <= self.bins <= 64:

@@ -22,6 +22,13 @@ symmetric about fails even where its silhouette fits. Region statistics cannot t
 of its own colours: there a pose can slip, and the texture check is what catches it.
 `refine_detection` refines a detector's pose (and, optionally, its cuboid's half turns) and measures both; when
 the refined pose fails them it measures the detector's own pose and keeps that one if it passes.
+
+A silhouette holds a pose only through its outline: a box seen face on can slide and tilt with little change of
+it. `align_texture` adds the model's texture, render-and-compare: the albedo rendered at the pose, pasted over the
+image, its corners (Shi-Tomasi) lifted onto the model through a depth render and followed into the image by
+pyramidal Lucas-Kanade flow (both images locally normalised, so the light on each face matters little; a point
+flow does not bring back is dropped); the pose the pairs alone give (PnP) and that pose refined again with them
+as a reprojection term beside the contour compete with the silhouette's by texture agreement.
 """
 
 from __future__ import annotations
@@ -37,7 +44,8 @@ import numpy as np
 from n2d_common.frames import make_T, transform_points
 from n2d_common.raster import render_textured
 from n2d_common.torch_utils import torch_threads
-from n2d_dope.config import RefineConfig
+from n2d_dope.config import FlowConfig, RefineConfig
+from n2d_dope.flow import FlowPoints
 from n2d_dope.region_model import REGION_MODEL, RegionModel, build_region_model
 
 _ALPHA = 0.43
@@ -253,6 +261,24 @@ def pose_score(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, region: Re
     return float(agree.mean()), int(keep.sum())
 
 
+def _roi(K: np.ndarray, T_cam_obj: np.ndarray, vertices: np.ndarray, shape: tuple, margin_px: int):
+    """((x0, y0, x1, y1) inclusive pixel box of the projected model grown by `margin_px` and clipped to the image,
+    the intrinsics of that box), or None when the model is behind the camera or covers under 8 px a side."""
+    h, w = shape[:2]
+    uv = transform_points(T_cam_obj, vertices) @ K.T
+    if (uv[:, 2] <= 1e-3).any():
+        return None
+    uv = uv[:, :2] / uv[:, 2:3]
+    x0, y0 = np.maximum(np.floor(uv.min(0)).astype(int) - margin_px, 0)
+    x1, y1 = np.minimum(np.ceil(uv.max(0)).astype(int) + margin_px, [w - 1, h - 1])
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    K_roi = K.copy()
+    K_roi[0, 2] -= x0
+    K_roi[1, 2] -= y0
+    return (int(x0), int(y0), int(x1), int(y1)), K_roi
+
+
 def texture_agreement(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, model: TexturedModel,
                       window_px: int = 15, margin_px: int = 4) -> float:
     """How well the image's grey levels match the model's albedo rendered at a pose (-1..1; NaN when the model
@@ -260,18 +286,10 @@ def texture_agreement(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, mod
     windows over the pixels the model covers (eroded by 2 px), averaged with the albedo's local contrast as weight,
     so that the light falling differently on each face changes it little and plain regions count little."""
     K = np.asarray(K, float)
-    h, w = rgb.shape[:2]
-    uv = transform_points(T_cam_obj, model.vertices) @ K.T
-    if (uv[:, 2] <= 1e-3).any():
+    roi = _roi(K, T_cam_obj, model.vertices, rgb.shape, margin_px)
+    if roi is None:
         return float("nan")
-    uv = uv[:, :2] / uv[:, 2:3]
-    x0, y0 = np.maximum(np.floor(uv.min(0)).astype(int) - margin_px, 0)
-    x1, y1 = np.minimum(np.ceil(uv.max(0)).astype(int) + margin_px, [w - 1, h - 1])
-    if x1 - x0 < 8 or y1 - y0 < 8:
-        return float("nan")
-    K_roi = K.copy()
-    K_roi[0, 2] -= x0
-    K_roi[1, 2] -= y0
+    (x0, y0, x1, y1), K_roi = roi
     with torch_threads(1):  # a small render: more threads only contend with the network's
         rendered, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K_roi,
                                          T_cam_obj, x1 - x0 + 1, y1 - y0 + 1)
@@ -304,13 +322,93 @@ def cuboid_turns(symmetries: list[np.ndarray] | None = None) -> list[np.ndarray]
                                                          for S in symmetries)]
 
 
+ALIGN_FLOW = FlowConfig(points=120, window_px=21, levels=3, fb_px=1.5)
+"""Texture points of `align_texture`: more, and followed further than between video frames (a detector's pose
+is off by up to a few tens of pixels)."""
+
+
+def _normalised(gray: np.ndarray, sigma_px: float = 4.0) -> np.ndarray:
+    """A grey image with its local mean taken out and its local contrast scaled to one (uint8 about 128): an
+    unlit albedo and a lit photo of it look alike."""
+    x = gray.astype(np.float32)
+    centred = x - cv2.GaussianBlur(x, (0, 0), sigma_px)
+    spread = np.sqrt(cv2.GaussianBlur(centred * centred, (0, 0), sigma_px)) + 4.0
+    return np.clip(128 + 40 * centred / spread, 0, 255).astype(np.uint8)
+
+
+def texture_points(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, model: TexturedModel,
+                   flow: FlowPoints) -> tuple[np.ndarray, np.ndarray] | None:
+    """(object-frame points N x 3, where the image shows them N x 2 pixels): corners of the albedo rendered at a
+    pose, followed into the image (see the module docstring); None when too few are followed."""
+    K = np.asarray(K, float)
+    roi = _roi(K, T_cam_obj, model.vertices, rgb.shape, 0)
+    if roi is None:
+        return None
+    (x0, y0, x1, y1), K_roi = roi
+    with torch_threads(1):  # a small render: more threads only contend with the network's
+        rendered, mask = render_textured(model.vertices, model.faces, model.face_uvs, model.albedo, K_roi,
+                                         T_cam_obj, x1 - x0 + 1, y1 - y0 + 1)
+    if mask.sum() < 50:
+        return None
+    image = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    pasted = image.copy()
+    window = pasted[y0:y1 + 1, x0:x1 + 1]
+    window[mask] = cv2.cvtColor(rendered, cv2.COLOR_RGB2GRAY)[mask]
+    if flow.select(_normalised(pasted), K, T_cam_obj) < flow.cfg.min_points:
+        return None
+    return flow.follow(_normalised(image))
+
+
+def align_texture(rgb: np.ndarray, K: np.ndarray, refined: Refined, region: RegionModel, cfg: RefineConfig,
+                  model: TexturedModel, flow: FlowPoints) -> Refined:
+    """`refined` after up to `cfg.texture_rounds` rounds of render-and-compare, each kept while the texture agrees
+    better with the image (its silhouette score taken again)."""
+    best = refined
+    if not np.isfinite(best.texture):
+        best.texture = texture_agreement(rgb, K, best.T_cam_obj, model)
+    for _ in range(cfg.texture_rounds):
+        points = texture_points(rgb, K, best.T_cam_obj, model, flow)
+        if points is None:
+            break
+        moved = []
+        fitted = _points_pose(points, K, best.T_cam_obj)
+        if fitted is not None:  # the points alone (the outline can pull a face-on pose off them), then both
+            moved.append(Refined(fitted, *pose_score(rgb, K, fitted, region, cfg)))
+        moved.append(refine_pose(rgb, K, moved[0].T_cam_obj if moved else best.T_cam_obj, region, cfg, points,
+                                 flow.cfg.sigma_px))
+        for m in moved:
+            m.texture = texture_agreement(rgb, K, m.T_cam_obj, model)
+        top = max((m for m in moved if m.score >= cfg.min_score and m.texture > best.texture),
+                  key=lambda m: m.texture, default=None)
+        if top is None:
+            break
+        best = top
+    return best
+
+
+def _points_pose(points: tuple[np.ndarray, np.ndarray], K: np.ndarray, T_cam_obj: np.ndarray,
+                 inlier_px: float = 2.0) -> np.ndarray | None:
+    """The pose that projects the object-frame points onto their pixels (RANSAC, started at `T_cam_obj`), or None
+    when PnP fails or keeps fewer than half of them."""
+    X, px = (np.ascontiguousarray(a, np.float64) for a in points)
+    rvec = cv2.Rodrigues(np.asarray(T_cam_obj, float)[:3, :3])[0]
+    tvec = np.asarray(T_cam_obj, float)[:3, 3].reshape(3, 1).copy()
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, px, np.asarray(K, float), None, rvec, tvec,
+                                                 useExtrinsicGuess=True, iterationsCount=100,
+                                                 reprojectionError=inlier_px, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or inliers is None or len(inliers) < len(X) / 2 or tvec[2, 0] <= 0:
+        return None
+    return make_T(cv2.Rodrigues(rvec)[0], tvec[:, 0])
+
+
 def refine_detection(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, region: RegionModel,
                      cfg: RefineConfig | None = None, textured: TexturedModel | None = None,
-                     turns: list[np.ndarray] | None = None) -> Refined:
+                     turns: list[np.ndarray] | None = None, flow: FlowPoints | None = None) -> Refined:
     """Refine a detector's pose; with a textured model also measure its texture agreement, and with
     `cfg.texture_turns` refine the half turns the detector may confuse it with too (`turns`, default
-    `cuboid_turns()`) and keep the one whose texture agrees best with the image. With `cfg.keep_start`, a refined
-    pose that is not `believable` gives way to the detector's own pose when that one is."""
+    `cuboid_turns()`) and keep the one whose texture agrees best with the image; with `cfg.texture_rounds` (and
+    the model's `flow` points) align the texture (`align_texture`). With `cfg.keep_start`, a refined pose that is
+    not `believable` gives way to the detector's own pose when that one is (aligned as well)."""
     cfg = cfg or RefineConfig()
     T0 = np.asarray(T_cam_obj, float)
     starts = (turns or cuboid_turns()) if cfg.texture_turns and textured is not None else [np.eye(4)]
@@ -323,9 +421,14 @@ def refine_detection(rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, regi
             c.texture = texture_agreement(rgb, K, c.T_cam_obj, textured)
     textured_ones = [c for c in candidates if np.isfinite(c.texture)]
     best = max(textured_ones, key=lambda c: c.texture) if len(textured_ones) > 1 else candidates[0]
+    aligned = cfg.texture_rounds > 0 and flow is not None
+    if aligned:
+        best = align_texture(rgb, K, best, region, cfg, textured, flow)
     if cfg.keep_start and not believable(best, cfg):
         score, lines = pose_score(rgb, K, T0, region, cfg)
         start = Refined(T0.copy(), score, lines, texture_agreement(rgb, K, T0, textured))
+        if aligned:
+            start = align_texture(rgb, K, start, region, cfg, textured, flow)
         if believable(start, cfg):
             return start
     return best
@@ -349,6 +452,7 @@ class Refiner:
         object_dir = Path(object_dir)
         V, F, face_uvs, albedo = read_textured_model(object_dir)
         self.textured = TexturedModel(V, F, face_uvs, albedo)
+        self.flow = FlowPoints(V, F, ALIGN_FLOW)
         info = json.loads((object_dir / "models_info.json").read_text())
         entry = next(iter(info.values())) if "diameter" not in info else info
         self.turns = cuboid_turns(symmetric_poses(from_models_info(entry)))
@@ -373,4 +477,4 @@ class Refiner:
     def __call__(self, rgb: np.ndarray, K: np.ndarray, T_cam_obj: np.ndarray, cfg: RefineConfig | None = None
                  ) -> Refined:
         """Refine a detector's pose (see `refine_detection`)."""
-        return refine_detection(rgb, K, T_cam_obj, self.region, cfg or self.cfg, self.textured, self.turns)
+        return refine_detection(rgb, K, T_cam_obj, self.region, cfg or self.cfg, self.textured, self.turns, self.flow)
