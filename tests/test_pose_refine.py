@@ -203,7 +203,8 @@ def test_bad_input(box, tmp_path):
         build_region_model(np.zeros((3, 3)), np.zeros((0, 3), int))
     with pytest.raises(ContractError, match="mesh.obj"):
         Refiner(tmp_path)
-    for bad in (dict(scales=()), dict(bins=1), dict(min_score=2.0), dict(min_texture=-3.0)):
+    for bad in (dict(scales=()), dict(bins=1), dict(min_score=2.0), dict(min_texture=-3.0),
+                dict(texture_rounds=-1)):
         with pytest.raises(ValueError):
             RefineConfig(**bad)
     rgb, T, _ = scene(model, np.random.default_rng(4))
@@ -215,6 +216,11 @@ def test_bad_input(box, tmp_path):
     assert not believable(refine_pose(rgb, K, away, region), RefineConfig())  # out of view
     plain = TexturedModel(model.vertices, model.faces, model.face_uvs, np.full((2, 2, 3), 128, np.uint8))
     assert np.isnan(texture_agreement(rgb, K, T, plain))  # a plain model: the texture cannot decide
+    # nor move it: render-and-compare leaves a plain model's pose to the silhouette
+    flow = FlowPoints(model.vertices, model.faces, ALIGN_FLOW)
+    silhouette = refine_detection(rgb, K, T, region, RefineConfig(texture_rounds=0), plain, flow=flow)
+    assert np.array_equal(refine_detection(rgb, K, T, region, RefineConfig(), plain, flow=flow).T_cam_obj,
+                          silhouette.T_cam_obj)
 
 
 def test_raster_silhouette_matches_the_rendered_mask(box):

@@ -141,16 +141,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=CONVERGED_SAMPLES, help="Cycles samples per pixel")
     parser.add_argument("--placements", type=int, default=1, choices=(1, 2),
                         help="2: sweep, turn the object over (SECOND_PLACEMENT_DEG), sweep again")
+    parser.add_argument("--clutter-seed", type=int, default=0, help="another seed: another scene around the plate")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the camera noise")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
     if args.views < 1:
         parser.error("--views must be >= 1")
     try:
         world = SimWorldConfig(object=args.object, width=args.width, height=args.height,
-                               focal_px=SimWorldConfig().focal_px * args.width / 640, samples=args.samples)
+                               focal_px=SimWorldConfig().focal_px * args.width / 640, samples=args.samples,
+                               clutter_seed=args.clutter_seed)
     except ValueError as exc:
         parser.error(str(exc))
-    render_session(args.out, world, args.views, overwrite=args.overwrite,
+    render_session(args.out, world, args.views, seed=args.seed, overwrite=args.overwrite,
                    placements=[turned(world)] if args.placements == 2 else ())
     return 0
 
