@@ -366,6 +366,8 @@ def align_texture(rgb: np.ndarray, K: np.ndarray, refined: Refined, region: Regi
     best = refined
     if not np.isfinite(best.texture):
         best.texture = texture_agreement(rgb, K, best.T_cam_obj, model)
+    if not np.isfinite(best.texture):  # a plain model (or too small a view of it): no texture to align
+        return best
     for _ in range(cfg.texture_rounds):
         points = texture_points(rgb, K, best.T_cam_obj, model, flow)
         if points is None:
@@ -393,9 +395,12 @@ def _points_pose(points: tuple[np.ndarray, np.ndarray], K: np.ndarray, T_cam_obj
     X, px = (np.ascontiguousarray(a, np.float64) for a in points)
     rvec = cv2.Rodrigues(np.asarray(T_cam_obj, float)[:3, :3])[0]
     tvec = np.asarray(T_cam_obj, float)[:3, 3].reshape(3, 1).copy()
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, px, np.asarray(K, float), None, rvec, tvec,
-                                                 useExtrinsicGuess=True, iterationsCount=100,
-                                                 reprojectionError=inlier_px, flags=cv2.SOLVEPNP_ITERATIVE)
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, px, np.asarray(K, float), None, rvec, tvec,
+                                                     useExtrinsicGuess=True, iterationsCount=100,
+                                                     reprojectionError=inlier_px, flags=cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error:  # degenerate points (all on one line): no pose from them
+        return None
     if not ok or inliers is None or len(inliers) < len(X) / 2 or tvec[2, 0] <= 0:
         return None
     return make_T(cv2.Rodrigues(rvec)[0], tvec[:, 0])
